@@ -1,0 +1,100 @@
+"""The voxel grid: an axis-aligned box cut into (nx, ny, nz) cells.
+
+Voxel ``(k, j, i)`` (z, y, x order, x fastest, as in ``density.npz``) is the cell whose corner
+nearest ``bbox_min`` is ``bbox_min + (i, j, k) * voxel_size``; its value sits at the cell
+centre, exactly how ``torch.nn.functional.grid_sample(align_corners=False)`` reads a volume.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+def resolution_for_box(resolution, extent) -> tuple[int, int, int]:
+    """(nx, ny, nz) from an int (cells along the longest side, others follow the aspect
+    ratio) or from an explicit triple."""
+    if isinstance(resolution, int) or (hasattr(resolution, "__len__") and len(resolution) == 1):
+        n = int(resolution if isinstance(resolution, int) else resolution[0])
+        if n < 1:
+            raise ValueError(f"grid.resolution must be positive, got {n}")
+        ext = [float(e) for e in extent]
+        longest = max(ext)
+        return tuple(max(1, round(n * e / longest)) for e in ext)  # type: ignore[return-value]
+    res = tuple(int(r) for r in resolution)
+    if len(res) != 3 or min(res) < 1:
+        raise ValueError(f"grid.resolution must be an int or [nx, ny, nz] of positive ints, got {resolution}")
+    return res  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """Box ``[bbox_min, bbox_max]`` (world units) split into ``resolution = (nx, ny, nz)`` cells."""
+
+    bbox_min: tuple[float, float, float]
+    bbox_max: tuple[float, float, float]
+    resolution: tuple[int, int, int]
+
+    @classmethod
+    def from_box(cls, bbox_min, bbox_max, resolution) -> "VoxelGrid":
+        lo = tuple(float(v) for v in bbox_min)
+        hi = tuple(float(v) for v in bbox_max)
+        if any(h <= l for l, h in zip(lo, hi)):
+            raise ValueError(f"bounding box is empty: min {lo}, max {hi}")
+        ext = [h - l for l, h in zip(lo, hi)]
+        return cls(lo, hi, resolution_for_box(resolution, ext))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Array shape (nz, ny, nx)."""
+        nx, ny, nz = self.resolution
+        return (nz, ny, nx)
+
+    @property
+    def num_voxels(self) -> int:
+        nx, ny, nz = self.resolution
+        return nx * ny * nz
+
+    def lo(self, device=None) -> torch.Tensor:
+        return torch.tensor(self.bbox_min, dtype=torch.float32, device=device)
+
+    def hi(self, device=None) -> torch.Tensor:
+        return torch.tensor(self.bbox_max, dtype=torch.float32, device=device)
+
+    def voxel_size(self, device=None) -> torch.Tensor:
+        """Cell size (3,) in world units, xyz order."""
+        return (self.hi(device) - self.lo(device)) / torch.tensor(
+            self.resolution, dtype=torch.float32, device=device
+        )
+
+    def centers(self, device=None) -> torch.Tensor:
+        """World xyz of every cell centre, (nz, ny, nx, 3)."""
+        lo, size = self.lo(device), self.voxel_size(device)
+        axes = [lo[a] + (torch.arange(self.resolution[a], device=device) + 0.5) * size[a] for a in range(3)]
+        z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+        return torch.stack([x, y, z], dim=-1)
+
+    def world_to_index(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Continuous voxel coordinates (…, 3) as (i, j, k): cell centre ``i`` sits at ``i``."""
+        return (xyz - self.lo(xyz.device)) / self.voxel_size(xyz.device) - 0.5
+
+    def index_to_world(self, ijk: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`world_to_index`."""
+        return self.lo(ijk.device) + (ijk + 0.5) * self.voxel_size(ijk.device)
+
+    def world_to_normalized(self, xyz: torch.Tensor) -> torch.Tensor:
+        """World xyz (…, 3) to grid_sample's [-1, 1] coordinates (align_corners=False)."""
+        lo, hi = self.lo(xyz.device), self.hi(xyz.device)
+        return 2.0 * (xyz - lo) / (hi - lo) - 1.0
+
+    def corners(self) -> torch.Tensor:
+        """The 8 corners of the box (8, 3)."""
+        lo, hi = self.lo(), self.hi()
+        c = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=torch.float32)
+        return lo + c * (hi - lo)
+
+    def scaled(self, factor: float) -> "VoxelGrid":
+        """Same box, resolution multiplied by ``factor`` (coarse-to-fine, finer phantoms)."""
+        res = tuple(max(1, round(r * factor)) for r in self.resolution)
+        return VoxelGrid(self.bbox_min, self.bbox_max, res)  # type: ignore[arg-type]

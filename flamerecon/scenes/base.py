@@ -1,0 +1,79 @@
+"""The one scene type every loader returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from kornia.geometry.camera import PinholeCamera
+
+from ..grid import VoxelGrid
+
+
+class SceneError(ValueError):
+    """Bad scene input; the message names the file and the field."""
+
+
+@dataclass
+class Scene:
+    """Calibrated views of one frame.
+
+    - ``views``: camera names, one per image;
+    - ``cameras``: kornia camera batch (B), OpenCV world->camera, pixel centres at +0.5;
+    - ``images``: (B, C, H, W) float32 in [0, 1], linear in emitted radiance;
+    - ``bbox_min`` / ``bbox_max``: world xyz of the box that holds the density;
+    - ``default_holdout``: view names held out when the config does not say;
+    - ``masks``: optional (B, H, W) bool silhouettes when the source provides them;
+    - ``truth`` / ``truth_grid``: optional ground-truth density (C, nz, ny, nx) for synthetic scenes;
+    - ``source``: where the scene came from (file or generator), for messages.
+    """
+
+    name: str
+    views: list[str]
+    cameras: PinholeCamera
+    images: torch.Tensor
+    bbox_min: tuple[float, float, float]
+    bbox_max: tuple[float, float, float]
+    default_holdout: list[str] = field(default_factory=list)
+    masks: torch.Tensor | None = None
+    truth: torch.Tensor | None = None
+    truth_grid: VoxelGrid | None = None
+    source: str = ""
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def num_views(self) -> int:
+        return len(self.views)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(H, W)."""
+        return int(self.images.shape[-2]), int(self.images.shape[-1])
+
+    def split(self, holdout) -> tuple[list[int], list[int]]:
+        """Resolve ``holdout`` (view names or indices; None for the scene's default) into
+        (train indices, held-out indices)."""
+        if holdout is None:
+            holdout = list(self.default_holdout)
+        if isinstance(holdout, (str, int)):
+            holdout = [holdout]
+        held: list[int] = []
+        for h in holdout:
+            if isinstance(h, int) or (isinstance(h, str) and h.lstrip("-").isdigit() and h not in self.views):
+                i = int(h)
+                if not -self.num_views <= i < self.num_views:
+                    raise SceneError(
+                        f"holdout: view index {i} is out of range; scene '{self.name}' has "
+                        f"{self.num_views} views: {self.views}"
+                    )
+                i %= self.num_views
+            elif h in self.views:
+                i = self.views.index(h)
+            else:
+                raise SceneError(f"holdout: unknown view '{h}'; scene '{self.name}' has views {self.views}")
+            if i not in held:
+                held.append(i)
+        train = [i for i in range(self.num_views) if i not in held]
+        if not train:
+            raise SceneError(f"holdout: {list(holdout)} holds out every view of scene '{self.name}'; keep at least one for training")
+        return train, held

@@ -1,0 +1,144 @@
+"""The one interface every solver shares.
+
+A solver minimises, per colour channel and over hull voxels,
+
+    F(x) = 0.5 * ||A x - b||_2^2 + l1 * sum(x)      subject to x >= 0
+
+(the paper's eq. 6 up to the factor 1/2; ``sum(x) == ||x||_1`` on the feasible set), where
+``A`` is any :class:`LinearOperator` (the projector restricted to silhouette rays x hull
+voxels), ``b`` (N, C) the pixel values and ``x`` (M, C) the voxel densities. The C columns
+(R, G, B) share A and are solved together.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import torch
+
+
+class LinearOperator(Protocol):
+    """A linear map from voxels (M, C) to pixels (N, C) with its adjoint."""
+
+    shape: tuple[int, int]  # (N, M)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor: ...
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor: ...
+
+
+@dataclass
+class Problem:
+    """A nonnegative LASSO: operator ``A``, data ``b`` (N, C), absolute weight ``l1`` >= 0."""
+
+    A: LinearOperator
+    b: torch.Tensor
+    l1: float = 0.0
+
+    def objective_parts(self, x: torch.Tensor) -> dict[str, float]:
+        """Data term 0.5||Ax-b||^2, L1 term l1*sum|x| and their sum, as Python floats."""
+        r = self.A.forward(x) - self.b
+        data = 0.5 * float((r.double() ** 2).sum())
+        l1 = self.l1 * float(x.double().abs().sum())
+        return {"objective": data + l1, "data": data, "l1": l1}
+
+    def objective(self, x: torch.Tensor) -> float:
+        return self.objective_parts(x)["objective"]
+
+
+def duality_gap(
+    problem: Problem, x: torch.Tensor, residual: torch.Tensor, grad: torch.Tensor
+) -> tuple[float, float]:
+    """Primal value and duality gap of the nonnegative LASSO at a feasible ``x``.
+
+    ``residual`` = A x - b (N, C) and ``grad`` = A^T residual (M, C). The dual point is the
+    negated residual scaled per channel into the feasible set {u : A^T u <= l1}.
+    """
+    r = residual.double()
+    b = problem.b.double()
+    primal = 0.5 * (r**2).sum(0) + problem.l1 * x.double().sum(0)
+    worst = (-grad.double()).amax(0)  # max_j (A^T u)_j for u = -r
+    if problem.l1 > 0:
+        scale = torch.where(worst > problem.l1, problem.l1 / worst.clamp_min(1e-300), torch.ones_like(worst))
+    else:
+        scale = torch.where(worst > 0, torch.zeros_like(worst), torch.ones_like(worst))
+    u = -r * scale
+    dual = (b * u).sum(0) - 0.5 * (u**2).sum(0)
+    return float(primal.sum()), float((primal - dual).clamp_min(0).sum())
+
+
+@dataclass
+class SolveResult:
+    """What a solve returns: densities (M, C) and how it got there."""
+
+    x: torch.Tensor
+    iterations: int
+    seconds: float
+    objective: float
+    converged: bool
+    history: list[dict] = field(default_factory=list)
+
+
+Callback = Callable[[int, torch.Tensor, dict], None]
+
+
+class Solver:
+    """Base class: subclasses implement :meth:`_run`; :meth:`solve` times it."""
+
+    name = "base"
+
+    def solve(
+        self, problem: Problem, x0: torch.Tensor | None = None, callback: Callback | None = None
+    ) -> SolveResult:
+        M = problem.A.shape[1]
+        C = problem.b.shape[1]
+        x = (
+            torch.zeros(M, C, dtype=problem.b.dtype, device=problem.b.device)
+            if x0 is None
+            else x0.to(problem.b).clamp_min(0).clone()
+        )
+        start = time.perf_counter()
+        result = self._run(problem, x, callback)
+        result.seconds = time.perf_counter() - start
+        return result
+
+    def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
+        raise NotImplementedError
+
+
+SOLVERS: dict[str, type[Solver]] = {}
+
+
+def register(name: str):
+    """Class decorator adding a solver to :data:`SOLVERS` under ``name``."""
+
+    def deco(cls: type[Solver]) -> type[Solver]:
+        cls.name = name
+        SOLVERS[name] = cls
+        return cls
+
+    return deco
+
+
+def make_solver(name: str, **options) -> Solver:
+    """Instantiate the solver registered as ``name`` with its options."""
+    if name not in SOLVERS:
+        raise ValueError(f"unknown solver '{name}': choose one of {sorted(SOLVERS)}")
+    return SOLVERS[name](**options)
+
+
+def power_norm_sq(A: LinearOperator, M: int, device, dtype=torch.float32, iters: int = 30, seed: int = 0) -> float:
+    """Estimate ||A||_2^2 (largest eigenvalue of A^T A) by power iteration."""
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    v = torch.rand(M, 1, generator=g, dtype=dtype).to(device)
+    v /= v.norm()
+    lam = 0.0
+    for _ in range(iters):
+        w = A.adjoint(A.forward(v))
+        lam = float(w.norm())
+        if lam == 0.0:
+            return 0.0
+        v = w / lam
+    return lam
