@@ -13,8 +13,9 @@ voxels), ``b`` (N, C) the pixel values and ``x`` (M, C) the voxel densities. The
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Protocol
 
 import torch
 
