@@ -229,3 +229,18 @@ def test_export_errors(tmp_path):
         export_run(tmp_path, ["vtu"])
     proc = _run_script("export.py", tmp_path / "nope")
     assert proc.returncode != 0 and "nope" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("config", sorted((REPO / "conf" / "export").glob("*.yaml")),
+                         ids=lambda p: p.stem)
+def test_export_config_group_names_known_formats(tmp_path, config):
+    yaml = pytest.importorskip("yaml")
+    formats = yaml.safe_load(config.read_text())["formats"]
+    save_density(tmp_path / "density.npz", _volume(1), LO, HI, [])
+    if "vti" in formats:
+        pytest.importorskip("vtkmodules")
+    if "nrrd" in formats:
+        pytest.importorskip("nrrd")
+    written = export_run(tmp_path, formats)
+    assert {p.suffix for p in written} == {f".{f}" for f in formats} | (
+        {".json"} if "raw" in formats else set())
