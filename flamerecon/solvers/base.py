@@ -13,8 +13,9 @@ voxels), ``b`` (N, C) the pixel values and ``x`` (M, C) the voxel densities. The
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Protocol
 
 import torch
 
@@ -142,3 +143,15 @@ def power_norm_sq(A: LinearOperator, M: int, device, dtype=torch.float32, iters:
             return 0.0
         v = w / lam
     return lam
+
+
+def density_scale(A: LinearOperator, b: torch.Tensor) -> torch.Tensor:
+    """Per-channel best constant density c (C,) minimising ||A (c 1) - b||: <A1, b>/||A1||^2.
+
+    A unit-free scale for step sizes; 1 where the fit is degenerate (A 1 = 0 or c <= 0).
+    """
+    ones = torch.ones(A.shape[1], 1, dtype=b.dtype, device=b.device)
+    a1 = A.forward(ones).double()
+    denom = float((a1 * a1).sum())
+    c = (a1 * b.double()).sum(0) / max(denom, 1e-300)
+    return torch.where(c > 0, c, torch.ones_like(c)).to(b.dtype)
