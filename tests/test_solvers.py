@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -70,3 +72,59 @@ def test_csr_forward_is_differentiable_with_adjoint_backward():
     y = torch.tensor(b)
     (op.forward(x) * y).sum().backward()  # d/dx <A x, y> = A^T y
     torch.testing.assert_close(x.grad, torch.tensor(A.T @ b), rtol=1e-5, atol=1e-5)
+
+
+def test_lars_matches_sklearn_at_the_same_lambda(lasso_case):
+    A, b, lam, ref = lasso_case
+    res = make_solver("lars").solve(Problem(csr(A), torch.tensor(b), lam))
+    assert res.converged and (res.x >= 0).all()
+    assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-4 * ref
+
+
+def test_lars_refuses_large_problems_and_names_fista():
+    A, b, lam = tiny_problem()
+    with pytest.raises(ValueError, match="solver=fista"):
+        make_solver("lars", max_voxels=10).solve(Problem(csr(A), torch.tensor(b), lam))
+
+
+@pytest.mark.parametrize("shape", [(80, 30), (30, 60)], ids=["overdetermined", "underdetermined"])
+def test_cgls_matches_scipy_lsqr(shape):
+    from scipy.sparse.linalg import lsqr
+
+    A, b, _ = tiny_problem(seed=2, N=shape[0], M=shape[1], C=2)
+    A += np.eye(*A.shape, dtype=np.float32)  # well conditioned, full rank
+    res = make_solver("cgls", tol=1e-7, max_iters=500).solve(Problem(csr(A), torch.tensor(b)))
+    ref = np.stack([lsqr(A.astype(np.float64), b[:, c].astype(np.float64),
+                         atol=1e-14, btol=1e-14, iter_lim=10_000)[0] for c in range(2)], 1)
+    np.testing.assert_allclose(res.x.numpy(), ref, rtol=1e-3, atol=1e-4 * np.abs(ref).max())
+
+
+def test_cgls_damped_matches_scipy_lsqr_damp():
+    from scipy.sparse.linalg import lsqr
+
+    A, b, _ = tiny_problem(seed=3, N=40, M=60, C=1)
+    res = make_solver("cgls", tol=1e-7, damp=0.5, max_iters=500).solve(
+        Problem(csr(A), torch.tensor(b)))
+    ref = lsqr(A.astype(np.float64), b[:, 0].astype(np.float64), damp=0.5,
+               atol=1e-14, btol=1e-14)[0]
+    np.testing.assert_allclose(res.x[:, 0].numpy(), ref, rtol=1e-3, atol=1e-4 * np.abs(ref).max())
+
+
+def test_sart_decreases_residual_monotonically_on_consistent_system():
+    A, _, _ = tiny_problem(seed=4, N=90, M=60, C=2)
+    truth = np.random.default_rng(4).random((60, 2)).astype(np.float32)
+    b = A @ truth  # consistent, with a nonnegative solution
+    weighted, plain = [], []
+    res = make_solver("sart", relax=1.5, tol=0.0, max_iters=100, check_every=1).solve(
+        Problem(csr(A), torch.tensor(b)),
+        callback=lambda it, x, info: (weighted.append(info["weighted_residual"]),
+                                      plain.append(info["data"])))
+    assert (res.x >= 0).all()
+    start = 0.5 * float((b.astype(np.float64) ** 2 / A.sum(1, keepdims=True)).sum())  # x = 0
+    assert all(a2 <= a1 for a1, a2 in itertools.pairwise([start, *weighted]))
+    assert plain[-1] < 1e-2 * plain[0]
+
+
+def test_make_solver_lists_choices_for_unknown_name():
+    with pytest.raises(ValueError, match="unknown solver 'nope'"):
+        make_solver("nope")
