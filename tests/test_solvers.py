@@ -128,3 +128,29 @@ def test_sart_decreases_residual_monotonically_on_consistent_system():
 def test_make_solver_lists_choices_for_unknown_name():
     with pytest.raises(ValueError, match="unknown solver 'nope'"):
         make_solver("nope")
+
+
+def test_resolve_l1_absolute_and_relative():
+    from flamerecon.solvers import resolve_l1
+
+    A, b, _ = tiny_problem(seed=5)
+    op, bt = csr(A), torch.tensor(b)
+    assert resolve_l1(op, bt, l1=0.3) == 0.3
+    assert resolve_l1(op, bt, l1=0.0, l1_rel=1e-2) == pytest.approx(1e-2 * (A.T @ b).max(),
+                                                                     rel=1e-5)
+    assert resolve_l1(Problem(op, bt), l1=None, l1_rel=0.5) == pytest.approx(
+        0.5 * (A.T @ b).max(), rel=1e-5)
+    with pytest.raises(ValueError, match="solver.l1_rel"):
+        resolve_l1(op, bt, l1=0.3, l1_rel=0.1)
+    with pytest.raises(ValueError, match="solver.l1 must be"):
+        resolve_l1(op, bt, l1=-1.0)
+
+
+def test_lambda_at_l1_rel_one_gives_zero_solution():
+    from flamerecon.solvers import resolve_l1
+
+    A, b, _ = tiny_problem(seed=6)
+    problem = Problem(csr(A), torch.tensor(b))
+    problem.l1 = resolve_l1(problem, l1_rel=1.0 + 1e-4)
+    res = make_solver("fista", tol=1e-6).solve(problem)
+    assert float(res.x.abs().max()) == 0.0
