@@ -18,6 +18,19 @@ def _csr32(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> t
     return torch.sparse_csr_tensor(crow.to(torch.int32), col.to(torch.int32), val, size=shape)
 
 
+class _CsrMatmul(torch.autograd.Function):
+    """y = A x with dL/dx = A^T dL/dy, using the stored transpose (no transpose at run time)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, A: torch.Tensor, AT: torch.Tensor) -> torch.Tensor:
+        ctx.AT = AT
+        return A @ x
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        return ctx.AT @ grad_out.contiguous(), None, None
+
+
 class CsrOperator:
     """A stored once as CSR and once transposed; ``forward`` computes A x, ``adjoint`` A^T y.
 
@@ -63,6 +76,9 @@ class CsrOperator:
         return self.nnz * (self.A.values().element_size() + 4) + (self.shape[0] + 1) * 4
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """A x for x (M, C) -> (N, C); differentiable in ``x`` (the backward is A^T)."""
+        if x.requires_grad and torch.is_grad_enabled():
+            return _CsrMatmul.apply(x, self.A, self.AT)
         return self.A @ x
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
