@@ -162,8 +162,8 @@ def summary_table(metrics: dict) -> str:
     """The short table printed at the end of a run."""
     s = metrics["solver"]
     rows = [
-        ("held-out PSNR [dB]", f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
-                               f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})"),
+        ("held-out PSNR [dB]", (f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
+                               f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})")),
         ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
         ("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"),
     ]
