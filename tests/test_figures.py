@@ -2,26 +2,42 @@
 
 from __future__ import annotations
 
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
 from flamerecon.cameras import camera_centers, project_points
+from flamerecon.export import save_density
 from flamerecon.figures import (
+    compare_images,
     framing_distance,
+    grid_of,
+    hull_masks,
     montage,
     orbit_cameras,
     overlay_mask,
     project_along,
+    render_views,
     slices_figure,
+    support_box,
     to_rgb8,
     top_view,
+    turntable_frames,
+    views_around,
     write_gif,
     write_mp4,
     write_png,
 )
 
+REPO = Path(__file__).resolve().parents[1]
 LO = np.array([0.0, 0.0, 0.0])
 HI = np.array([2.0, 4.0, 1.0])  # nx, ny, nz = 4, 8, 2 -> voxel size 0.5 in every direction
 
@@ -135,3 +151,123 @@ def test_framing_distance_sees_the_whole_box():
                             for z in (lo[2], hi[2])], dtype=torch.float32)
     uv, _ = project_points(cams, corners)
     assert (uv >= 0).all() and (uv <= 80).all()
+
+
+# --- renders through the projector -------------------------------------------------------------
+
+BOX = (np.array([-0.5, -0.5, -0.5]), np.array([0.5, 0.5, 0.5]))
+
+
+def _cube(n: int = 8) -> torch.Tensor:
+    return torch.ones(1, n, n, n)
+
+
+def _off_centre_blob(n: int = 12) -> torch.Tensor:
+    """(1, n, n, n) uniform small density plus a bright block on the +x side."""
+    vol = torch.full((1, n, n, n), 0.05)
+    vol[0, n // 2 - 1:n // 2 + 1, n // 2 - 1:n // 2 + 1, n - 3:n - 1] = 1.0
+    return vol
+
+
+def test_render_views_integrates_in_world_units():
+    cams = orbit_cameras([0.0, 90.0], 0.0, 3.0, (0, 0, 0), width=33, height=33, fov_deg=30)
+    images = render_views(_cube(), *BOX, cams)
+    assert images.shape == (2, 1, 33, 33)
+    # the centre ray crosses the unit cube along its axis: integral of 1 over length 1
+    np.testing.assert_allclose(images[:, 0, 16, 16], [1.0, 1.0], rtol=2e-2)
+    assert images[:, 0, 0, 0].abs().max() == 0  # corner rays miss the box
+
+
+def test_render_orientation_left_right_flip_on_opposite_sides():
+    cams = orbit_cameras([0.0, 180.0], 0.0, 3.0, (0, 0, 0), width=41, height=41, fov_deg=30)
+    images = render_views(_off_centre_blob(), *BOX, cams)[:, 0]
+    column_mass = images.sum(dim=1)  # (B, W)
+    centroid = (column_mass * (torch.arange(41) + 0.5)).sum(1) / column_mass.sum(1)
+    assert centroid[0] > 20.5 > centroid[1]  # +x to the right seen from +z, left from -z
+
+
+def test_views_around_and_turntable_shapes():
+    sheet = views_around(_off_centre_blob(), *BOX, n=10, width=24, height=16, columns=5)
+    assert sheet.shape == (32, 120, 3) and sheet.max() > 0
+    frames = turntable_frames(_off_centre_blob(), *BOX, n_frames=4, width=24, height=16)
+    assert len(frames) == 4 and frames[0].shape == (16, 24, 3)
+    assert not np.array_equal(frames[1], frames[3])  # 90 and 270 degrees differ
+
+
+def test_hull_masks_and_overlay():
+    hull = torch.zeros(8, 8, 8, dtype=torch.bool)
+    hull[2:6, 2:6, 2:6] = True
+    cams = orbit_cameras([0.0], 0.0, 3.0, (0, 0, 0), width=33, height=33, fov_deg=30)
+    masks = hull_masks(hull, grid_of(_cube(), *BOX), cams)
+    assert masks.shape == (1, 33, 33)
+    assert masks[0, 16, 16] and not masks[0, 2, 2]
+    out = overlay_mask(np.zeros((3, 33, 33), np.float32), masks[0].numpy())
+    assert out[16, 16, 1] > 0 and out[2, 2].sum() == 0
+
+
+def test_compare_images_panels():
+    rendered = np.full((3, 4, 5), 0.5, np.float32)
+    captured = rendered.copy()
+    captured[:, 0, 0] = 1.0
+    row = compare_images(rendered, captured)
+    assert row.shape == (4, 15, 3)
+    assert (row[1:, :5] == row[1:, 5:10]).all() and not (row[0, 0] == row[0, 5]).all()
+    error_panel = row[:, 10:]
+    assert error_panel[0, 0].sum() > error_panel[2, 2].sum()  # the one wrong pixel stands out
+
+
+def test_support_box_and_empty_volume():
+    vol = torch.zeros(1, 4, 4, 4)
+    vol[0, 1, 2, 3] = 5.0  # (k, j, i)
+    near, far = support_box(vol, *BOX)
+    np.testing.assert_allclose(near, [0.25, 0.0, -0.25])
+    np.testing.assert_allclose(far, [0.5, 0.25, 0.0])
+    near, far = support_box(torch.zeros(1, 4, 4, 4), *BOX)
+    np.testing.assert_allclose(near, BOX[0])
+
+
+def _run_render(*args) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, str(REPO / "scripts" / "render.py"), *map(str, args)],
+                          check=False, capture_output=True, text=True, env=env)
+
+
+def test_render_script_orbit_calibration_turntable_figures(tmp_path):
+    pytest.importorskip("matplotlib")
+    save_density(tmp_path / "density.npz", _off_centre_blob(10).repeat(3, 1, 1, 1), *BOX, ["a"])
+    cams = orbit_cameras([45.0], 10.0, 3.0, (0, 0, 0), width=20, height=16, fov_deg=30)
+    (tmp_path / "cameras.json").write_text(json.dumps({"cameras": [{
+        "name": "side", "K": cams.intrinsics[0, :3, :3].tolist(),
+        "world_to_camera": cams.extrinsics[0].tolist(), "width": 20, "height": 16}]}))
+    proc = _run_render(tmp_path, "--camera", "orbit:30,10", "--camera", "orbit:0,0,3",
+                       "--camera", tmp_path / "cameras.json", "--turntable", "3", "--figures",
+                       "--width", "24", "--height", "16", "--device", "cpu")
+    assert proc.returncode == 0, proc.stderr
+    renders = tmp_path / "renders"
+    names = sorted(p.name for p in renders.iterdir())
+    framed = [n for n in names if n.startswith("orbit_az30_el10_d")]  # distance chosen to frame
+    assert len(framed) == 1
+    assert set(names) - set(framed) == {"orbit_az0_el0_d3.png", "side.png", "turntable.mp4",
+                                        "turntable.gif", "top_view.png", "views_10.png",
+                                        "slices.png"}
+    assert cv2.imread(str(renders / "side.png")).shape == (16, 20, 3)
+    assert cv2.imread(str(renders / "views_10.png")).shape == (32, 120, 3)
+    # the calibration-file camera renders what render_views gives for the same camera
+    expected = to_rgb8(render_views(_off_centre_blob(10).repeat(3, 1, 1, 1), *BOX, cams)[0])
+    np.testing.assert_array_equal(cv2.imread(str(renders / "side.png"))[..., ::-1], expected)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--camera", "orbit:30"], "orbit:ANGLE,ELEV"),
+    (["--camera", "orbit:a,b"], "not numbers"),
+    (["--camera", "CAMFILE"], "'K'"),
+])
+def test_render_script_errors_name_the_problem(tmp_path, capsys, args, message):
+    spec = importlib.util.spec_from_file_location("render_script", REPO / "scripts" / "render.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    save_density(tmp_path / "density.npz", _cube(4), *BOX, [])
+    (tmp_path / "cams.json").write_text(json.dumps([{"name": "c", "width": 4, "height": 4}]))
+    args = [str(tmp_path / "cams.json") if a == "CAMFILE" else a for a in args]
+    assert script.main([str(tmp_path), *args]) == 1
+    assert message in capsys.readouterr().err
