@@ -80,10 +80,27 @@ def ray_box(rays: Rays, lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tenso
     return t_near, t_far
 
 
-def ray_samples(rays: Rays, grid: VoxelGrid, step: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Segment midpoints (R, S, 3) and segment lengths (R, S) along each ray inside the
-    march box; ``step`` is the segment length in units of the smallest voxel side."""
-    lo, hi = march_box(grid, rays.origins.device)
+def support_box(grid: VoxelGrid, voxel_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The box (3,), (3,) outside which the trilinear interpolant of values on the voxels
+    ``voxel_index`` (flat indices) vanishes: their centres' bounding box grown by a voxel."""
+    nx, ny, _ = grid.resolution
+    device = voxel_index.device
+    if voxel_index.numel() == 0:
+        return grid.lo(device), grid.lo(device)
+    ijk = torch.stack([voxel_index % nx, (voxel_index // nx) % ny, voxel_index // (nx * ny)], -1)
+    size = grid.voxel_size(device)
+    lo = grid.lo(device) + (ijk.amin(0) - 0.5) * size
+    hi = grid.lo(device) + (ijk.amax(0) + 1.5) * size
+    return lo, hi
+
+
+def ray_samples(
+    rays: Rays, grid: VoxelGrid, step: float, box: tuple[torch.Tensor, torch.Tensor] | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Segment midpoints (R, S, 3) and segment lengths (R, S) along each ray inside ``box``
+    (default: the march box); ``step`` is the segment length in units of the smallest voxel
+    side."""
+    lo, hi = march_box(grid, rays.origins.device) if box is None else box
     t_near, t_far = ray_box(rays, lo, hi)
     ds = float(step) * float(grid.voxel_size().min())
     span = (t_far - t_near).clamp_min(0.0)
@@ -105,12 +122,16 @@ def _chunks(rays: Rays, grid: VoxelGrid, step: float):
         yield sl, rays[sl]
 
 
-def integrate_dense(volume: torch.Tensor, grid: VoxelGrid, rays: Rays, step: float = 0.5) -> torch.Tensor:
-    """Line integrals (R, C) of a dense volume (C, nz, ny, nx) along ``rays``; differentiable."""
+def integrate_dense(
+    volume: torch.Tensor, grid: VoxelGrid, rays: Rays, step: float = 0.5,
+    box: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
+    """Line integrals (R, C) of a dense volume (C, nz, ny, nx) along ``rays``; differentiable.
+    ``box`` may narrow the march to where the volume can be nonzero (see :func:`support_box`)."""
     C = volume.shape[0]
     out = []
     for _, chunk in _chunks(rays, grid, step):
-        points, length = ray_samples(chunk, grid, step)
+        points, length = ray_samples(chunk, grid, step, box)
         coords = grid.world_to_normalized(points)  # (R, S, 3) as x, y, z
         vals = F.grid_sample(
             volume[None], coords[None, None], mode="bilinear", padding_mode="zeros", align_corners=False
@@ -159,9 +180,10 @@ def assemble(
     column = torch.full((grid.num_voxels,), -1, dtype=torch.long, device=device)
     column[voxel_index.to(device)] = torch.arange(voxel_index.numel(), device=device)
     M = int(voxel_index.numel())
+    box = support_box(grid, voxel_index.to(device))
     rows_all, cols_all, vals_all = [], [], []
     for sl, chunk in _chunks(rays, grid, step):
-        points, length = ray_samples(chunk, grid, step)
+        points, length = ray_samples(chunk, grid, step, box)
         valid = length > 0
         row = torch.arange(sl.start, sl.start + len(chunk), device=device)[:, None].expand_as(length)[valid]
         idx, w = trilinear_weights(points[valid], length[valid], grid)
@@ -193,6 +215,7 @@ class MatrixFreeOperator:
     def __init__(self, grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5):
         self.grid, self.rays, self.step = grid, rays, float(step)
         self.voxel_index = voxel_index.to(rays.origins.device)
+        self.box = support_box(grid, self.voxel_index)
         self.shape = (len(rays), int(voxel_index.numel()))
 
     def volume(self, x: torch.Tensor) -> torch.Tensor:
@@ -203,7 +226,7 @@ class MatrixFreeOperator:
         return vol.reshape(C, *self.grid.shape)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return integrate_dense(self.volume(x), self.grid, self.rays, self.step)
+        return integrate_dense(self.volume(x), self.grid, self.rays, self.step, self.box)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
         x = torch.zeros(self.shape[1], y.shape[1], dtype=y.dtype, device=y.device, requires_grad=True)
