@@ -6,7 +6,7 @@
 Writes into RUN_DIR/renders/ (or --out):
   orbit_az<A>_el<E>_d<D>.png   one per orbit camera (degrees, world units; DIST defaults to a
                                distance that frames the flame)
-  <name>.png                   one per camera of a calibration file (the run's cameras.json
+  camera_<name>.png            one per camera of a calibration file (the run's cameras.json
                                format: name, K, world_to_camera, width, height)
   turntable.mp4, turntable.gif N views on a full circle
   top_view.png, views_10.png, slices.png   the paper's Fig. 5 and 6 and orthogonal slices
@@ -143,6 +143,7 @@ def render(args: argparse.Namespace) -> list[Path]:
             names = [f"orbit_az{azimuth:g}_el{elevation:g}_d{distance:.3g}"]
         else:
             names, cams = read_cameras_json(Path(spec), args.view)
+            names = [f"camera_{name}" for name in names]  # <view>.png is the pipeline's held-out figure
         images = render_views(volume, lo, hi, cams)
         for name, image in zip(names, images):
             written.append(write_png(out / f"{name}.png", to_rgb8(image, args.vmax)))

@@ -247,14 +247,14 @@ def test_render_script_orbit_calibration_turntable_figures(tmp_path):
     names = sorted(p.name for p in renders.iterdir())
     framed = [n for n in names if n.startswith("orbit_az30_el10_d")]  # distance chosen to frame
     assert len(framed) == 1
-    assert set(names) - set(framed) == {"orbit_az0_el0_d3.png", "side.png", "turntable.mp4",
+    assert set(names) - set(framed) == {"orbit_az0_el0_d3.png", "camera_side.png", "turntable.mp4",
                                         "turntable.gif", "top_view.png", "views_10.png",
                                         "slices.png"}
-    assert cv2.imread(str(renders / "side.png")).shape == (16, 20, 3)
+    assert cv2.imread(str(renders / "camera_side.png")).shape == (16, 20, 3)
     assert cv2.imread(str(renders / "views_10.png")).shape == (32, 120, 3)
     # the calibration-file camera renders what render_views gives for the same camera
     expected = to_rgb8(render_views(_off_centre_blob(10).repeat(3, 1, 1, 1), *BOX, cams)[0])
-    np.testing.assert_array_equal(cv2.imread(str(renders / "side.png"))[..., ::-1], expected)
+    np.testing.assert_array_equal(cv2.imread(str(renders / "camera_side.png"))[..., ::-1], expected)
 
 
 @pytest.mark.parametrize(("args", "message"), [
