@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
+from importlib.util import find_spec
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,8 @@ from flamerecon.export import save_density
 from flamerecon.sequence import SweepError, assemble_sweep, find_frame_runs, flatten_metrics
 
 REPO = Path(__file__).resolve().parents[1]
+needs_vtk = pytest.mark.skipif(find_spec("vtkmodules") is None,
+                               reason="vtk not installed: pip install 'flamerecon[export]'")
 LO = np.array([-1.0, 0.0, -1.0])
 HI = np.array([1.0, 4.0, 1.0])
 SHAPE = (3, 6, 5, 4)  # (C, nz, ny, nx)
@@ -50,6 +53,7 @@ def _metrics(frame: int) -> dict:
             "ssim": 0.9}}, "train": {"psnr": 35.0}}
 
 
+@needs_vtk
 def test_assemble_script_on_three_frames(tmp_path):
     sweep = tmp_path / "multirun"
     for job, frame in enumerate([20, 0, 10]):  # jobs finish in any order; frames get sorted
@@ -164,6 +168,7 @@ if __name__ == "__main__":
 """
 
 
+@needs_vtk
 def test_joblib_multirun_then_assemble(tmp_path):
     """The sequence workflow end to end with Hydra's joblib launcher and a stand-in app."""
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
