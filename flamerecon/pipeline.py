@@ -243,8 +243,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path) -> dict:
     }
     train_names = [scene.views[i] for i in setup.train]
     save_density(
-        run_dir / "density.npz", volume.cpu(), scene_grid(cfg, scene).bbox_min, setup.grid.bbox_max,
-        train_names, solver=json.dumps(solver_info),
+        run_dir / "density.npz", volume.cpu(), setup.grid.bbox_min, setup.grid.bbox_max,
+        train_names, solver=json.dumps(solver_info), frame=int(cfg.scene.get("frame", 0)),
     )
     write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
     metrics = finish(run_dir, scene, volume, setup.grid, setup.train, setup.holdout, setup.step, solver_info)
