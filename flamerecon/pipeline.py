@@ -17,6 +17,7 @@ from tqdm import tqdm
 from .atomic import atomic_write_bytes, write_json_atomic
 from .cameras import K_of, camera_subset, cameras_to
 from .export import export_run, load_density, save_density
+from .figures import top_view
 from .grid import VoxelGrid
 from .hull import visual_hull
 from .metrics import psnr, resample_to, ssim, volume_errors
@@ -24,7 +25,7 @@ from .projector import camera_rays, make_operator, render_image
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
 from .solvers import Problem, make_solver, resolve_l1
-from .tb_logging import RunWriter, side_by_side, top_view
+from .tb_logging import RunWriter, side_by_side
 
 
 def resolve_device(name: str) -> torch.device:
@@ -206,7 +207,7 @@ class Monitor:
         self.writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix="eval")
         for img, v in zip(imgs, s.holdout):
             self.writer.image(f"heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
-        self.writer.image("density/top_view", top_view(vol), it)
+        self.writer.image("density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
 
     def close(self) -> None:
         self.bar.close()
@@ -249,7 +250,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path) -> dict:
     write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
     metrics = finish(run_dir, scene, volume, setup.grid, setup.train, setup.holdout, setup.step, solver_info)
     monitor.pictures(result.iterations, result.x)
-    writer.image("images/hull_top_view", top_view(setup.hull[None].float()), 0)
+    writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
+                                                  setup.grid.bbox_max), 0, "HWC")
     writer.hparams(
         {"scene": cfg.scene.name, "solver": cfg.solver.name, "l1": l1,
          "grid": str(setup.grid.resolution), "holdout": ",".join(scene.views[i] for i in setup.holdout)},
