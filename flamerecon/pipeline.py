@@ -228,7 +228,10 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path) -> dict:
     device = resolve_device(cfg.device)
     scene = load_scene(cfg.scene)
     setup = prepare(cfg, scene, device)
-    l1 = resolve_l1(setup.operator, setup.pixels, cfg.solver.get("l1", 0.0), cfg.solver.get("l1_rel"))
+    l1, l1_rel = cfg.solver.get("l1"), cfg.solver.get("l1_rel")
+    if l1 is not None:
+        l1_rel = None  # an absolute weight wins over the relative default
+    l1 = resolve_l1(setup.operator, setup.pixels, l1, l1_rel)
     problem = Problem(setup.operator, setup.pixels, l1)
     solver = make_solver(cfg.solver.name, **solver_options(cfg))
     writer = RunWriter(str(run_dir))

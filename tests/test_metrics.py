@@ -86,12 +86,13 @@ def test_resample_to_gives_exact_cell_averages_for_integer_ratios():
     assert torch.allclose(coarse, exact, atol=1e-12)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "resample_to uses interpolate(mode='area') = adaptive average pooling, whose bins for a "
-    "non-integer ratio (21 -> 11 cells: the tiny test config's 32-cell phantom on a 16-cell "
-    "grid) overlap and are not the coarse cells; a linear ramp comes back off by ~1.7% of its "
-    "range. Fix: separable overlap-weighted averaging (per axis a (n_out, n_in) matrix of "
-    "overlap lengths of fine cell i with coarse cell o, times n_out / n_in)."))
 def test_resample_to_gives_exact_cell_averages_for_non_integer_ratios():
-    coarse, exact = ramp(21, 11)
-    assert torch.allclose(coarse, exact, atol=1e-6)
+    # reference: split both grids into their least common multiple of cells (21 * 11), where
+    # each fine cell is constant, and average blocks of 21 -> exact coarse cell averages
+    fine = torch.rand(21, dtype=torch.float64)
+    coarse = resample_to(fine.expand(1, 2, 2, 21).clone(), (2, 2, 11))[0, 0, 0]
+    exact = fine.repeat_interleave(11).reshape(11, 21).mean(1)
+    assert torch.allclose(coarse, exact, atol=1e-12)
+    # and the old adaptive pooling would not pass this
+    pooled = torch.nn.functional.adaptive_avg_pool1d(fine[None, None], 11)[0, 0]
+    assert not torch.allclose(pooled, exact, atol=1e-3)
