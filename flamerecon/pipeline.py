@@ -89,6 +89,19 @@ def prepare(cfg: DictConfig, scene: Scene, device: torch.device) -> Setup:
     return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step)
 
 
+def initial_guess(path: str | Path, grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
+    """Hull values (M, C) from a finished run's density (warm start, e.g. from the previous
+    frame of a video), averaged onto ``grid`` when its resolution differs."""
+    saved = load_density(path)
+    if not (np.allclose(saved.bbox_min, grid.bbox_min) and np.allclose(saved.bbox_max, grid.bbox_max)):
+        raise ValueError(
+            f"init: {path} covers the box {saved.bbox_min.tolist()}-{saved.bbox_max.tolist()}, "
+            f"this run's grid {list(grid.bbox_min)}-{list(grid.bbox_max)}; warm start needs the same box"
+        )
+    vol = resample_to(torch.from_numpy(saved.density), grid.shape).to(voxel_index.device)
+    return vol.reshape(vol.shape[0], -1)[:, voxel_index].T.contiguous()
+
+
 def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
     """Rendered images (len(views), C, H, W) of the density for the given view indices."""
     cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
@@ -237,7 +250,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path) -> dict:
     writer = RunWriter(str(run_dir))
     monitor = Monitor(setup, writer, cfg, int(cfg.solver.get("max_iters", 0)), device)
     try:
-        result = solver.solve(problem, callback=monitor)
+        x0 = initial_guess(cfg.init, setup.grid, setup.voxel_index) if cfg.get("init") else None
+        result = solver.solve(problem, x0=x0, callback=monitor)
     finally:
         monitor.close()
     volume = setup.volume(result.x)
