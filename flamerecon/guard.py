@@ -37,9 +37,7 @@ class StopSignals:
     def _handle(self, signum, _frame) -> None:
         if self.received is not None:
             raise KeyboardInterrupt
-        self.received = signal.Signals(signum).name
-        log.warning("%s received: stopping at the next solver check after a checkpoint "
-                    "(send it again to stop at once)", self.received)
+        self.received = signal.Signals(signum).name  # logged by the guard, not in the handler
 
 
 @contextlib.contextmanager
@@ -99,6 +97,8 @@ class SolveGuard:
         if self.inner is not None:
             self.inner(it, x, info)
         if self.signals is not None and self.signals.received:
+            log.warning("%s received: checkpointing and stopping at iteration %d",
+                        self.signals.received, it)
             self.checkpoint(it, x)
             raise StopSolve("interrupted", it, f"{self.signals.received} received")
         if self.every > 0 and it - self.last_saved >= self.every:

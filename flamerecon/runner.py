@@ -54,7 +54,7 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False) -> fl
         print(message, file=sys.stderr)
         if isinstance(err, Interrupted):
             raise SystemExit(err.exit_code) from None
-        record_failure(run_dir, message)
+        record_failure(run_dir, str(err))
         if multirun:
             return None
         print("flamerecon: (run again with debug=true for the traceback)", file=sys.stderr)
@@ -69,7 +69,7 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False) -> fl
             raise
         detail = traceback.format_exc()
         print(f"flamerecon: error (unexpected {type(err).__name__}): {err}", file=sys.stderr)
-        record_failure(run_dir, f"flamerecon: unexpected {type(err).__name__}: {err}\n\n{detail}")
+        record_failure(run_dir, f"unexpected {type(err).__name__}: {err}\n\n{detail}")
         return None
     print(f"\nflamerecon: {cfg.scene.name}, run folder {run_dir}\n{summary_table(metrics)}")
     return flat_metrics(metrics)["heldout_psnr"]
