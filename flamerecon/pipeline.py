@@ -255,6 +255,7 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     device = resolve_device(cfg.device)
     if cfg.solver.name not in SOLVERS:
         raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
+    ckpt = load_checkpoint(run_dir) if resume else None
     scene = load_scene(cfg.scene)
     setup = prepare(cfg, scene, device)
     try:
@@ -266,8 +267,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     meta = {"solver": cfg.solver.name, "shape": list(setup.operator.shape),
             "channels": int(setup.pixels.shape[1]), "l1": l1}
     x0, start, seconds_before = None, 0, 0.0
-    if resume:
-        x0, start, seconds_before = resume_solver(run_dir, solver, meta)
+    if ckpt is not None:
+        x0, start, seconds_before = resume_solver(run_dir, ckpt, solver, meta)
     start_x = x0 if x0 is not None else setup.pixels.new_zeros(problem.A.shape[1], problem.b.shape[1])
     start_objective = float(problem.objective(setup.pixels.new_zeros(start_x.shape)))
     writer = RunWriter(str(run_dir))
@@ -310,10 +311,9 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     return metrics
 
 
-def resume_solver(run_dir: Path, solver, meta: dict) -> tuple[torch.Tensor, int, float]:
-    """Load ``run_dir``'s checkpoint into ``solver``; returns (x0, iteration, seconds so far).
-    Refuses a checkpoint made for another problem (solver, operator shape, channels, l1)."""
-    ckpt = load_checkpoint(run_dir)
+def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.Tensor, int, float]:
+    """Load checkpoint ``ckpt`` of ``run_dir`` into ``solver``; returns (x0, iteration, seconds
+    so far). Refuses a checkpoint made for another problem (solver, operator shape, channels, l1)."""
     saved = ckpt["meta"]
     for key, now in meta.items():
         if key in saved and saved[key] != now:
