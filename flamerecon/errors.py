@@ -40,3 +40,7 @@ class Interrupted(FlameReconError):
     """SIGINT/SIGTERM during the solve; the state was checkpointed (exit status 130)."""
 
     exit_code = 130
+
+
+class RunFolderError(FlameReconError, FileNotFoundError):
+    """A folder given as a run folder (``resume=``, evaluate) that is not one."""

@@ -26,8 +26,9 @@ from .checks import (
     explain_empty_hull,
     memory_budget,
 )
-from .errors import ConfigError, FlameReconError, Interrupted, ResumeError, SolveDiverged
+from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
 from .export import export_run, load_density, save_density
+from .figures import top_view
 from .grid import VoxelGrid
 from .guard import SolveGuard, StopSolve, stop_signals
 from .hull import visual_hull
@@ -36,7 +37,7 @@ from .projector import camera_rays, make_operator, render_image
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
 from .solvers import SOLVERS, Problem, SolveResult, make_solver, resolve_l1
-from .tb_logging import RunWriter, side_by_side, top_view
+from .tb_logging import RunWriter, side_by_side
 
 log = logging.getLogger(__name__)
 
@@ -229,7 +230,7 @@ class Monitor:
         self.writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix="eval")
         for img, v in zip(imgs, s.holdout):
             self.writer.image(f"heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
-        self.writer.image("density/top_view", top_view(vol), it)
+        self.writer.image("density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
 
     def close(self) -> None:
         self.bar.close()
@@ -258,8 +259,11 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     ckpt = load_checkpoint(run_dir) if resume else None
     scene = load_scene(cfg.scene)
     setup = prepare(cfg, scene, device)
+    l1, l1_rel = cfg.solver.get("l1"), cfg.solver.get("l1_rel")
+    if l1 is not None:
+        l1_rel = None  # an absolute weight wins over the relative default
     try:
-        l1 = resolve_l1(setup.operator, setup.pixels, cfg.solver.get("l1", 0.0), cfg.solver.get("l1_rel"))
+        l1 = resolve_l1(setup.operator, setup.pixels, l1, l1_rel)
         solver = make_solver(cfg.solver.name, **solver_options(cfg))
     except ValueError as err:
         raise ConfigError(str(err)) from err
@@ -346,12 +350,13 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
     train_names = [scene.views[i] for i in setup.train]
     save_density(
         run_dir / "density.npz", volume.cpu(), setup.grid.bbox_min, setup.grid.bbox_max,
-        train_names, solver=json.dumps(solver_info),
+        train_names, solver=json.dumps(solver_info), frame=int(cfg.scene.get("frame", 0)),
     )
     write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
     metrics = finish(run_dir, scene, volume, setup.grid, setup.train, setup.holdout, setup.step, solver_info)
     monitor.pictures(result.iterations, result.x)
-    writer.image("images/hull_top_view", top_view(setup.hull[None].float()), 0)
+    writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
+                                                  setup.grid.bbox_max), 0, "HWC")
     writer.hparams(
         {"scene": cfg.scene.name, "solver": cfg.solver.name, "l1": l1,
          "grid": str(setup.grid.resolution), "holdout": ",".join(scene.views[i] for i in setup.holdout)},
@@ -386,7 +391,7 @@ def run_config(run_dir: str | Path) -> DictConfig:
     """The config a run folder was made with (``.hydra/config.yaml``)."""
     cfg_path = Path(run_dir) / ".hydra" / "config.yaml"
     if not cfg_path.is_file():
-        raise FlameReconError(f"{cfg_path}: not found; is {run_dir} a flamerecon run folder?")
+        raise RunFolderError(f"{cfg_path}: not found; is {run_dir} a flamerecon run folder?")
     return OmegaConf.load(cfg_path)
 
 

@@ -97,16 +97,28 @@ def support_box(grid: VoxelGrid, voxel_index: torch.Tensor) -> tuple[torch.Tenso
 def ray_samples(
     rays: Rays, grid: VoxelGrid, step: float, box: tuple[torch.Tensor, torch.Tensor] | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Segment midpoints (R, S, 3) and segment lengths (R, S) along each ray inside ``box``
-    (default: the march box); ``step`` is the segment length in units of the smallest voxel
-    side."""
-    lo, hi = march_box(grid, rays.origins.device) if box is None else box
+    """Segment midpoints (R, S, 3) and segment lengths (R, S) along each ray through the
+    march box; ``step`` is the segment length in units of the smallest voxel side.
+
+    Segments always start at the march box's entry, so that narrowing to ``box`` (where the
+    density can be nonzero, see :func:`support_box`) only skips segments outside it and
+    leaves every other sample where the full march puts it.
+    """
+    lo, hi = march_box(grid, rays.origins.device)
     t_near, t_far = ray_box(rays, lo, hi)
     ds = float(step) * float(grid.voxel_size().min())
-    span = (t_far - t_near).clamp_min(0.0)
-    S = max(1, int(torch.ceil(span.max() / ds).item())) if len(rays) else 1
-    start = t_near[:, None] + torch.arange(S, device=span.device, dtype=span.dtype) * ds
-    length = (t_far[:, None] - start).clamp(0.0, ds)
+    first = torch.zeros_like(t_near)
+    end = torch.ceil((t_far - t_near).clamp_min(0.0) / ds)
+    if box is not None:
+        b_near, b_far = ray_box(rays, *box)
+        first = torch.floor((b_near - t_near).clamp_min(0.0) / ds)
+        end = torch.minimum(end, torch.ceil((b_far - t_near).clamp_min(0.0) / ds))
+        end = torch.where(b_far > b_near, end, first)
+    count = (end - first).clamp_min(0.0)
+    S = max(1, int(count.max().item())) if len(rays) else 1
+    k = first[:, None] + torch.arange(S, device=t_near.device, dtype=t_near.dtype)
+    start = t_near[:, None] + k * ds
+    length = (t_far[:, None] - start).clamp(0.0, ds) * (k < end[:, None])
     mid = start + 0.5 * length
     points = rays.origins[:, None, :] + mid[..., None] * rays.directions[:, None, :]
     return points, length

@@ -18,13 +18,6 @@ def side_by_side(rendered: torch.Tensor, captured: torch.Tensor) -> torch.Tensor
     return torch.cat([to_display(rendered), to_display(captured), to_display(err)], dim=-1)
 
 
-def top_view(volume: torch.Tensor) -> torch.Tensor:
-    """The density seen from above (the paper's Fig. 5): sum over y of (C, nz, ny, nx),
-    normalised to its maximum, as a (3, nz, nx) image."""
-    proj = volume.detach().float().sum(2)
-    return to_display(proj / proj.max().clamp_min(1e-12))
-
-
 class RunWriter:
     """A SummaryWriter with the run's conventions (tags ``solve/*``, ``eval/*``, ``images/*``)."""
 
@@ -35,8 +28,9 @@ class RunWriter:
         for k, v in values.items():
             self.writer.add_scalar(f"{prefix}/{k}", v, step)
 
-    def image(self, tag: str, image: torch.Tensor, step: int) -> None:
-        self.writer.add_image(tag, image, step, dataformats="CHW")
+    def image(self, tag: str, image, step: int, dataformats: str = "CHW") -> None:
+        """Log an image: float (C, H, W) in [0, 1], or uint8 (H, W, 3) with ``dataformats="HWC"``."""
+        self.writer.add_image(tag, image, step, dataformats=dataformats)
 
     def hparams(self, params: dict, metrics: dict[str, float]) -> None:
         clean = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in params.items()}

@@ -97,6 +97,13 @@ def test_exception_inside_atomic_path_removes_temporary(tmp_path):
     assert list(tmp_path.iterdir()) == [dest]
 
 
+def test_written_file_has_usual_permissions(tmp_path):
+    umask = os.umask(0o022)
+    os.umask(umask)
+    path = atomic_write_bytes(tmp_path / "a.bin", b"x")
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
 def test_temporary_keeps_suffix_and_folder(tmp_path):
     dest = tmp_path / "vol.vti"
     with atomic_path(dest) as tmp:
@@ -126,12 +133,3 @@ def test_npz_and_json_round_trip(tmp_path):
     write_json_atomic(tmp_path / "m.json", {"psnr": np.float32(31.5), "v": np.arange(2)})
     assert json.loads((tmp_path / "m.json").read_text()) == {"psnr": 31.5, "v": [0, 1]}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "m.json"]
-
-
-def test_written_files_get_the_usual_permissions(tmp_path):
-    umask = os.umask(0o022)
-    try:
-        path = write_json_atomic(tmp_path / "metrics.json", {"a": 1})
-    finally:
-        os.umask(umask)
-    assert path.stat().st_mode & 0o777 == 0o644

@@ -61,10 +61,14 @@ def duality_gap(
     b = problem.b.double()
     primal = 0.5 * (r**2).sum(0) + problem.l1 * x.double().sum(0)
     worst = (-grad.double()).amax(0)  # max_j (A^T u)_j for u = -r
-    if problem.l1 > 0:
-        scale = torch.where(worst > problem.l1, problem.l1 / worst.clamp_min(1e-300), torch.ones_like(worst))
-    else:
-        scale = torch.where(worst > 0, torch.zeros_like(worst), torch.ones_like(worst))
+    if problem.l1 == 0:
+        # nonnegative least squares: the dual point -r is feasible only once A^T r >= 0, and
+        # scaling cannot make it so; use the KKT residual x.g + ||x||_1 max(0, -min g)
+        # instead, which equals the duality gap whenever -r is feasible and vanishes at x*
+        g = grad.double()
+        kkt = (x.double() * g).sum(0).clamp_min(0) + x.double().sum(0) * worst.clamp_min(0)
+        return float(primal.sum()), float(kkt.sum())
+    scale = torch.where(worst > problem.l1, problem.l1 / worst.clamp_min(1e-300), torch.ones_like(worst))
     u = -r * scale
     dual = (b * u).sum(0) - 0.5 * (u**2).sum(0)
     return float(primal.sum()), float((primal - dual).clamp_min(0).sum())
