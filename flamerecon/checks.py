@@ -170,9 +170,11 @@ def check_silhouettes(scene: Scene, masks: torch.Tensor, train: list[int], thres
         "no training view has a pixel above it" if len(empty) == len(train)
         else f"the silhouette of view(s) {names} is empty, so they would carve away the whole box"
     )
+    fix = (f"try silhouette.threshold={hint:.3g}" if hint > 0
+           else f"view '{names[0]}' is black: check its image file")
     raise HullError(
         f"{where}: silhouette.threshold={threshold:g}: {what} (brightest pixel "
-        f"{max(brightest.values()):.3g}); try silhouette.threshold={hint:.3g}"
+        f"{max(brightest.values()):.3g}); {fix}"
         + ("" if len(empty) == len(train) else f" or hold those views out (holdout=[...{names[0]}])")
     )
 

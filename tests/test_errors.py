@@ -50,7 +50,8 @@ CASES = {
                           (r"silhouette.threshold=1.5: no training view has a pixel above it.*try "
                           r"silhouette.threshold=0\.\d+")),
     "one empty silhouette": (defective("dark_view"), HullError,
-                             r"silhouette of view\(s\) \['cam02'\] is empty.*try silhouette.threshold="),
+                             (r"silhouette of view\(s\) \['cam02'\] is empty.*view 'cam02' is black: check its image "
+                             r"file or hold those views out")),
     "empty visual hull": ([*defective("disjoint_silhouette"), "grid.bbox=[[-0.3,0.2,-0.3],[0.3,1,0.3]]"],
                           HullError,
                           (r"visual hull .* is empty; camera 'cam02' alone carves away the \d+ voxels.*"
