@@ -1,18 +1,21 @@
-"""Reconstruct a flame: ``python train.py [key=value ...]`` (Hydra; see conf/train.yaml)."""
+"""Reconstruct a flame: ``python train.py [key=value ...]`` (Hydra; see conf/train.yaml).
+
+Bad input ends in one line naming the file and field (exit status 2; ``debug=true`` for the
+traceback); ``resume=RUN_DIR`` continues an interrupted run in its folder.
+"""
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
-def main(cfg: DictConfig) -> float:
-    from flamerecon.pipeline import flat_metrics, reconstruct, summary_table
+def main(cfg: DictConfig) -> float | None:
+    from flamerecon.runner import run_task
 
-    run_dir = HydraConfig.get().runtime.output_dir
-    metrics = reconstruct(cfg, run_dir)
-    print(f"\nflamerecon: {cfg.scene.name}, run folder {run_dir}\n{summary_table(metrics)}")
-    return flat_metrics(metrics)["heldout_psnr"]
+    hc = HydraConfig.get()
+    return run_task(cfg, hc.runtime.output_dir, multirun=hc.mode == RunMode.MULTIRUN)
 
 
 if __name__ == "__main__":

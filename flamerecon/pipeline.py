@@ -4,6 +4,7 @@ evaluate(run_dir): re-render a finished run's views and score them."""
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,16 +17,29 @@ from tqdm import tqdm
 
 from .atomic import atomic_write_bytes, write_json_atomic
 from .cameras import K_of, camera_subset, cameras_to
+from .checkpoint import CHECKPOINT_FILE, load_checkpoint
+from .checks import (
+    check_grid_memory,
+    check_scene,
+    check_silhouettes,
+    choose_backend,
+    explain_empty_hull,
+    memory_budget,
+)
+from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
 from .export import export_run, load_density, save_density
 from .figures import top_view
 from .grid import VoxelGrid
+from .guard import SolveGuard, StopSolve, stop_signals
 from .hull import visual_hull
 from .metrics import psnr, resample_to, ssim, volume_errors
 from .projector import camera_rays, make_operator, render_image
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
-from .solvers import Problem, make_solver, resolve_l1
+from .solvers import SOLVERS, Problem, SolveResult, make_solver, resolve_l1
 from .tb_logging import RunWriter, side_by_side
+
+log = logging.getLogger(__name__)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -33,7 +47,7 @@ def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device: 'cuda' was asked for but torch sees no CUDA device; use device=auto or cpu")
+        raise ConfigError("device: 'cuda' was asked for but torch sees no CUDA device; use device=auto or cpu")
     return torch.device(name)
 
 
@@ -66,25 +80,34 @@ def scene_grid(cfg: DictConfig, scene: Scene) -> VoxelGrid:
     lo, hi = (bbox[0], bbox[1]) if bbox is not None else (scene.bbox_min, scene.bbox_max)
     res = cfg.grid.resolution
     res = int(res) if isinstance(res, (int, float)) else list(res)
-    return VoxelGrid.from_box(lo, hi, res)
+    try:
+        return VoxelGrid.from_box(lo, hi, res)
+    except ValueError as err:
+        raise ConfigError(f"grid: {err}") from err
 
 
 def prepare(cfg: DictConfig, scene: Scene, device: torch.device) -> Setup:
     """Split, silhouettes, visual hull, rays and the operator restricted to them."""
     train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
     grid = scene_grid(cfg, scene)
+    check_scene(scene, grid)
+    budget = memory_budget(device, cfg.projector.get("max_memory_gb"))
+    check_grid_memory(grid, scene.num_views, device, budget)
     images = scene.images.to(device)
     masks = scene.masks.to(device) if scene.masks is not None else silhouettes(images, **cfg.silhouette)
+    threshold = float(cfg.silhouette.get("threshold", 0.0))
+    check_silhouettes(scene, masks, train, threshold)
     cams = cameras_to(camera_subset(scene.cameras, train), device)
-    hull = visual_hull(grid, cams, masks[train], int(cfg.hull.margin_voxels))
+    margin = int(cfg.hull.margin_voxels)
+    hull = visual_hull(grid, cams, masks[train], margin)
+    if not bool(hull.any()):
+        raise explain_empty_hull(scene, grid, cams, masks[train], train, threshold, margin)
     voxel_index = hull.reshape(-1).nonzero().squeeze(1)
     rays, flat = camera_rays(cams, masks[train])
     C = images.shape[1]
     pixels = images[train].permute(0, 2, 3, 1).reshape(-1, C)[flat].contiguous()
     step = float(cfg.projector.step)
-    backend = cfg.projector.backend
-    if backend == "auto":
-        backend = "assembled"
+    backend = choose_backend(cfg.projector.backend, grid, rays, voxel_index, step, device, budget)
     operator = make_operator(backend, grid, rays, voxel_index, step)
     return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step)
 
@@ -233,32 +256,112 @@ def solver_options(cfg: DictConfig) -> dict:
     return opts
 
 
-def reconstruct(cfg: DictConfig, run_dir: str | Path) -> dict:
-    """Run the whole pipeline for ``cfg`` and write the run folder; returns metrics.json's dict."""
+def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
+    """Run the whole pipeline for ``cfg`` and write the run folder; returns metrics.json's dict.
+
+    With ``resume`` the solve continues from ``run_dir/checkpoint.pt``. Raises
+    :class:`~flamerecon.errors.Interrupted` after checkpointing on SIGINT/SIGTERM, and
+    :class:`~flamerecon.errors.SolveDiverged` after writing the last good iterate's outputs.
+    """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
     device = resolve_device(cfg.device)
+    if cfg.solver.name not in SOLVERS:
+        raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
+    ckpt = load_checkpoint(run_dir) if resume else None
     scene = load_scene(cfg.scene)
     setup = prepare(cfg, scene, device)
     l1, l1_rel = cfg.solver.get("l1"), cfg.solver.get("l1_rel")
     if l1 is not None:
         l1_rel = None  # an absolute weight wins over the relative default
-    l1 = resolve_l1(setup.operator, setup.pixels, l1, l1_rel)
+    try:
+        l1 = resolve_l1(setup.operator, setup.pixels, l1, l1_rel)
+        solver = make_solver(cfg.solver.name, **solver_options(cfg))
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
     problem = Problem(setup.operator, setup.pixels, l1)
-    solver = make_solver(cfg.solver.name, **solver_options(cfg))
+    meta = {"solver": cfg.solver.name, "shape": list(setup.operator.shape),
+            "channels": int(setup.pixels.shape[1]), "l1": l1}
+    x0, start, seconds_before = None, 0, 0.0
+    if ckpt is not None:
+        x0, start, seconds_before = resume_solver(run_dir, ckpt, solver, meta)
+    elif cfg.get("init"):
+        x0 = initial_guess(cfg.init, setup.grid, setup.voxel_index)
+    start_x = x0 if x0 is not None else setup.pixels.new_zeros(problem.A.shape[1], problem.b.shape[1])
+    start_objective = float(problem.objective(setup.pixels.new_zeros(start_x.shape)))
     writer = RunWriter(str(run_dir))
     monitor = Monitor(setup, writer, cfg, int(cfg.solver.get("max_iters", 0)), device)
+    monitor.last = start
+    ck = cfg.get("checkpoint") or {}
+    guard = SolveGuard(solver, monitor, run_dir, int(ck.get("every", 0)),
+                       float(ck.get("divergence_factor", 0.0)), start_objective, meta,
+                       (start, start_x), seconds_before)
+    stopped: StopSolve | None = None
     try:
-        x0 = initial_guess(cfg.init, setup.grid, setup.voxel_index) if cfg.get("init") else None
-        result = solver.solve(problem, x0=x0, callback=monitor)
+        with stop_signals() as signals:
+            guard.signals = signals
+            try:
+                result = solver.solve(problem, x0=x0, callback=guard)
+                result.seconds = guard.seconds()
+            except StopSolve as stop:
+                if stop.reason == "interrupted":
+                    raise Interrupted(
+                        f"{run_dir}: {stop.detail} at iteration {stop.iteration}; the state is saved in "
+                        f"{CHECKPOINT_FILE}; continue with: python train.py resume={run_dir}"
+                    ) from None
+                stopped = stop
+                it, x = guard.last_good
+                log.error("solve %s; keeping the last good iterate (iteration %d)", stop, it)
+                result = SolveResult(x, it, guard.seconds(), problem.objective(x), False)
+        metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped)
     finally:
         monitor.close()
+        writer.close()
+    if stopped is not None:
+        raise SolveDiverged(
+            f"{run_dir}: the solve {stopped}; density.npz and metrics.json hold the last good "
+            f"iterate (iteration {result.iterations}); try a smaller step (solver.lr) or another solver"
+        )
+    (run_dir / CHECKPOINT_FILE).unlink(missing_ok=True)  # finished: nothing left to resume
+    formats = cfg.get("export", {}).get("formats", [])
+    if formats:
+        export_run(run_dir, list(formats))
+    return metrics
+
+
+def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.Tensor, int, float]:
+    """Load checkpoint ``ckpt`` of ``run_dir`` into ``solver``; returns (x0, iteration, seconds
+    so far). Refuses a checkpoint made for another problem (solver, operator shape, channels, l1)."""
+    saved = ckpt["meta"]
+    for key, now in meta.items():
+        if key in saved and saved[key] != now:
+            raise ResumeError(
+                f"{run_dir / CHECKPOINT_FILE}: field '{key}' is {saved[key]} but the run's config now "
+                f"gives {now}; the scene, grid or solver changed since the checkpoint"
+            )
+    state = ckpt["state"]
+    if ckpt.get("exact"):
+        solver.load_state(state)
+    else:
+        log.warning("%s: solver %s cannot restore its internal state; resuming from the saved "
+                    "iterate (a warm start, not bit-identical to an uninterrupted run)",
+                    run_dir / CHECKPOINT_FILE, meta["solver"])
+    log.info("resuming %s from iteration %d", run_dir, state["iteration"])
+    return state["x"], int(state["iteration"]), float(saved.get("seconds", 0.0))
+
+
+def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, writer: RunWriter,
+                  monitor: Monitor, result: SolveResult, l1: float, stopped: StopSolve | None) -> dict:
+    """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries."""
     volume = setup.volume(result.x)
     solver_info = {
         "name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
         "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
+        "status": "finished" if stopped is None else "diverged",
     }
+    if stopped is not None:
+        solver_info["stopped"] = {"iteration": stopped.iteration, "reason": stopped.detail}
     train_names = [scene.views[i] for i in setup.train]
     save_density(
         run_dir / "density.npz", volume.cpu(), setup.grid.bbox_min, setup.grid.bbox_max,
@@ -274,10 +377,6 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path) -> dict:
          "grid": str(setup.grid.resolution), "holdout": ",".join(scene.views[i] for i in setup.holdout)},
         flat_metrics(metrics),
     )
-    writer.close()
-    formats = cfg.get("export", {}).get("formats", [])
-    if formats:
-        export_run(run_dir, list(formats))
     return metrics
 
 
@@ -303,14 +402,19 @@ def finish(run_dir: Path, scene: Scene, volume: torch.Tensor, grid: VoxelGrid, t
     return metrics
 
 
+def run_config(run_dir: str | Path) -> DictConfig:
+    """The config a run folder was made with (``.hydra/config.yaml``)."""
+    cfg_path = Path(run_dir) / ".hydra" / "config.yaml"
+    if not cfg_path.is_file():
+        raise RunFolderError(f"{cfg_path}: not found; is {run_dir} a flamerecon run folder?")
+    return OmegaConf.load(cfg_path)
+
+
 def evaluate(run_dir: str | Path, device: str = "auto") -> dict:
     """Re-render the views of a finished run from its saved ``density.npz`` and config,
     write ``metrics.json`` and ``renders/``; returns the metrics."""
     run_dir = Path(run_dir)
-    cfg_path = run_dir / ".hydra" / "config.yaml"
-    if not cfg_path.is_file():
-        raise FileNotFoundError(f"{cfg_path}: not found; is {run_dir} a flamerecon run folder?")
-    cfg = OmegaConf.load(cfg_path)
+    cfg = run_config(run_dir)
     saved = load_density(run_dir / "density.npz")
     scene = load_scene(cfg.scene)
     train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)

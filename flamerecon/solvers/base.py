@@ -112,6 +112,25 @@ class Solver:
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
         raise NotImplementedError
 
+    # Optional exact resume (checkpoints): a solver that supports it sets ``self._state`` to the
+    # dict it needs to go on just before each callback, and reads ``self._resume`` in ``_run``.
+    _state: dict | None = None
+    _resume: dict | None = None
+
+    def state(self) -> dict | None:
+        """At a callback: what the solver needs to continue exactly from there (tensors, numbers,
+        lists; ``torch.save``-able), or None where it only supports a warm start from ``x``."""
+        return self._state
+
+    def load_state(self, state: dict) -> None:
+        """Make the next :meth:`solve` continue from ``state`` (from :meth:`state`), so that it
+        ends where an uninterrupted solve would; pass the same problem and ``x0 = state['x']``."""
+        self._resume = state
+
+    def _take_resume(self) -> dict | None:
+        state, self._resume = self._resume, None
+        return state
+
 
 SOLVERS: dict[str, type[Solver]] = {}
 

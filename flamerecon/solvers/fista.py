@@ -25,12 +25,16 @@ class Fista(Solver):
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
         A, b, lam = problem.A, problem.b, problem.l1
-        L = 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
+        resume = self._take_resume()
+        if resume is None:
+            L = 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
+            y, t, start, history = x.clone(), 1.0, 1, []
+        else:  # continue exactly where state() was taken (x is resume["x"])
+            L, t, start = resume["L"], resume["t"], resume["iteration"] + 1
+            y, history = resume["y"].to(x), list(resume["history"])
         step = 1.0 / max(L, 1e-30)
-        y, t = x.clone(), 1.0
-        history: list[dict] = []
-        converged, it = False, 0
-        for it in range(1, self.max_iters + 1):
+        converged, it = False, start - 1
+        for it in range(start, self.max_iters + 1):
             grad_y = A.adjoint(A.forward(y) - b)
             x_new = (y - step * (grad_y + lam)).clamp_min_(0)
             if self.restart and float(((y - x_new) * (x_new - x)).sum()) > 0:
@@ -50,6 +54,7 @@ class Fista(Solver):
                 }
                 history.append({"iteration": it, **info})
                 if callback is not None:
+                    self._state = {"iteration": it, "x": x, "y": y, "t": t, "L": L, "history": history}
                     callback(it, x, info)
                 if info["rel_gap"] < self.tol:
                     converged = True
