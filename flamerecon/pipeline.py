@@ -117,7 +117,7 @@ def initial_guess(path: str | Path, grid: VoxelGrid, voxel_index: torch.Tensor) 
     frame of a video), averaged onto ``grid`` when its resolution differs."""
     saved = load_density(path)
     if not (np.allclose(saved.bbox_min, grid.bbox_min) and np.allclose(saved.bbox_max, grid.bbox_max)):
-        raise ValueError(
+        raise ConfigError(
             f"init: {path} covers the box {saved.bbox_min.tolist()}-{saved.bbox_max.tolist()}, "
             f"this run's grid {list(grid.bbox_min)}-{list(grid.bbox_max)}; warm start needs the same box"
         )

@@ -37,3 +37,16 @@ def test_warm_start_refuses_a_different_box(tmp_path):
     reconstruct(tiny_config("log.eval_every=0", "solver.max_iters=5"), cold)
     with pytest.raises(ValueError, match="init: .* same box"):
         reconstruct(tiny_config("grid.bbox=[[-1,0,-1],[1,2,1]]", f"init={cold}"), tmp_path / "w")
+
+
+def test_evaluate_script_reports_a_missing_run_folder_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    from test_pipeline import REPO
+
+    proc = subprocess.run([sys.executable, "scripts/evaluate.py", str(tmp_path / "none")],
+                          cwd=REPO, capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "flamerecon: error:" in proc.stderr and "config.yaml: not found" in proc.stderr
+    assert "Traceback" not in proc.stderr
