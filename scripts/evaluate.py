@@ -14,8 +14,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flamerecon.errors import FlameReconError  # noqa: E402
-from flamerecon.pipeline import evaluate, summary_table  # noqa: E402
+from flamerecon.errors import FlameReconError
+from flamerecon.pipeline import evaluate, summary_table
 
 
 def main(argv: list[str] | None = None) -> int:
