@@ -1,0 +1,96 @@
+"""Camera photometry: from recorded pixel values to values linear in emitted radiance, and the
+per-camera gain and offset that tie a rendered line integral to what a camera recorded.
+
+The image model is ``image = gain * integral + offset`` per camera (``cameras.json`` stores
+``gain`` and ``offset``); :func:`linearize` undoes the sensor's response curve first.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def srgb_to_linear(values: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer curve inverted (IEC 61966-2-1), elementwise on values in [0, 1]."""
+    v = values.clamp(0.0, 1.0)
+    return torch.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def linearize(
+    images: torch.Tensor, gamma: float | str = 1.0, black_level: float = 0.0
+) -> torch.Tensor:
+    """Recorded images (B, C, H, W) in [0, 1] -> values linear in radiance, in [0, 1].
+
+    ``black_level`` (in recorded units) is subtracted and the rest stretched back to [0, 1];
+    then the response is undone: ``value ** gamma`` for a number (1 = already linear, 2.2 for
+    a typical video curve) or the sRGB curve for ``gamma="srgb"``.
+    """
+    if not 0.0 <= float(black_level) < 1.0:
+        raise ValueError(f"scene.black_level: must be in [0, 1), got {black_level}")
+    out = images
+    if black_level:
+        out = ((out - black_level) / (1.0 - black_level)).clamp_min(0.0)
+    if isinstance(gamma, str):
+        if gamma.lower() != "srgb":
+            raise ValueError(f"scene.gamma: a positive number or 'srgb', got '{gamma}'")
+        return srgb_to_linear(out)
+    if float(gamma) <= 0:
+        raise ValueError(f"scene.gamma: must be positive, got {gamma}")
+    if float(gamma) != 1.0:
+        out = out.clamp_min(0.0) ** float(gamma)
+    return out
+
+
+def fit_gain_offset(
+    rendered: torch.Tensor,
+    captured: torch.Tensor,
+    mask: torch.Tensor | None = None,
+    fit_offset: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-camera least-squares ``captured ~ gain * rendered + offset``.
+
+    ``rendered`` and ``captured``: (B, C, H, W) (or (B, N) flattened pixels); ``mask``
+    (B, H, W) bool (or (B, N)) selects the pixels that count, e.g. the silhouettes. Returns
+    ``gain`` (B,) and ``offset`` (B,) (zeros when ``fit_offset`` is False). A camera whose
+    rendering is constant over its pixels keeps gain 1.
+    """
+    B = rendered.shape[0]
+    r = rendered.double().reshape(B, -1)
+    c = captured.double().reshape(B, -1)
+    if mask is None:
+        w = torch.ones_like(r)
+    else:
+        m = mask.to(r.dtype)
+        if rendered.dim() == 4:  # one mask per view, shared by its channels
+            m = m[:, None].expand(rendered.shape)
+        w = m.reshape(B, -1)
+    n = w.sum(1).clamp_min(1.0)
+    if fit_offset:
+        mr, mc = (w * r).sum(1) / n, (w * c).sum(1) / n
+        var = (w * (r - mr[:, None]) ** 2).sum(1)
+        cov = (w * (r - mr[:, None]) * (c - mc[:, None])).sum(1)
+        gain = torch.where(var > 1e-20, cov / var.clamp_min(1e-20), torch.ones_like(var))
+        offset = mc - gain * mr
+    else:
+        rr = (w * r * r).sum(1)
+        gain = torch.where(
+            rr > 1e-20, (w * r * c).sum(1) / rr.clamp_min(1e-20), torch.ones_like(rr)
+        )
+        offset = torch.zeros_like(gain)
+    return gain.to(rendered.dtype), offset.to(rendered.dtype)
+
+
+def apply_gain_offset(
+    images: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor
+) -> torch.Tensor:
+    """``gain * images + offset`` per camera: images (B, ...), gain and offset (B,)."""
+    shape = (-1,) + (1,) * (images.dim() - 1)
+    return images * gain.reshape(shape) + offset.reshape(shape)
+
+
+def remove_gain_offset(
+    images: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor
+) -> torch.Tensor:
+    """Inverse of :func:`apply_gain_offset`: the line integrals a camera's images imply."""
+    shape = (-1,) + (1,) * (images.dim() - 1)
+    return (images - offset.reshape(shape)) / gain.reshape(shape)
