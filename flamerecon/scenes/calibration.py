@@ -68,7 +68,8 @@ def matrix(value, shape: tuple[int, ...], file, field: str) -> np.ndarray:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as err:
         raise SceneError(f"{file}: {field}: not a numeric array ({err})") from None
-    if arr.size == int(np.prod(shape)) and arr.shape != shape and arr.ndim <= 1:
+    vector = len(shape) == 1 and sum(n > 1 for n in arr.shape) <= 1  # (3,), (3, 1), (1, 3)
+    if arr.size == int(np.prod(shape)) and arr.shape != shape and (arr.ndim <= 1 or vector):
         arr = arr.reshape(shape)
     if arr.shape != shape:
         raise SceneError(f"{file}: {field}: expected shape {shape}, got {arr.shape}")
@@ -281,7 +282,10 @@ def choose_box(cfg, file_box, cams, images: torch.Tensor, source) -> tuple[tuple
 
 def distortion(value, file, field: str) -> np.ndarray:
     """OpenCV distortion coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]) as a flat array."""
-    d = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+    try:
+        d = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as err:
+        raise SceneError(f"{file}: {field}: not a list of numbers ({err})") from None
     if d.size not in (0, 4, 5, 8, 12, 14):
         raise SceneError(f"{file}: {field}: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
     if not np.isfinite(d).all():

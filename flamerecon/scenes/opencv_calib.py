@@ -66,8 +66,8 @@ def _from_file_node(node: cv2.FileNode):
         return None
     if node.isMap():
         keys = node.keys()
-        if {"rows", "cols", "data"} <= set(keys):
-            return node.mat()
+        if {"rows", "cols", "data"} <= set(keys) or {"sizes", "data"} <= set(keys):
+            return node.mat()  # opencv-matrix or opencv-nd-matrix
         return {k: _from_file_node(node.getNode(k)) for k in keys}
     if node.isSeq():
         return [_from_file_node(node.at(i)) for i in range(node.size())]
