@@ -43,20 +43,21 @@ def _disk(radius: int) -> np.ndarray:
 
 def silhouettes(
     images: torch.Tensor,
-    method: str = "otsu",
-    threshold: float | None = None,
+    method: str = "threshold",
+    threshold: float | None = 0.03,
     dilate_px: int = 2,
     background: torch.Tensor | None = None,
-    blur_px: float = 1.0,
+    blur_px: float = 0.0,
     open_px: int = 1,
-    close_px: int = 2,
+    close_px: int = 0,
 ) -> torch.Tensor:
     """Binary silhouettes (B, H, W) bool of images (B, C, H, W) in [0, 1].
 
     - ``background``: (C, H, W) or (B, C, H, W) images without the flame; when given, the
-      signal is the absolute difference to it, otherwise the image itself (channel maximum);
-    - ``method``: ``"otsu"`` picks each view's threshold from its denoised signal (or uses
-      ``threshold`` as a lower bound when given); ``"threshold"`` uses the fixed ``threshold``;
+      signal is what the flame adds to it (image minus background, clamped at 0), otherwise
+      the image itself; the brightest channel counts;
+    - ``method``: ``"threshold"`` uses the fixed ``threshold``; ``"otsu"`` picks each view's
+      level from its denoised signal, never below ``threshold`` when one is given;
     - ``blur_px``: Gaussian denoising sigma in pixels before thresholding (0 = none);
     - ``open_px`` / ``close_px``: radii of the opening (removes specks) and closing (fills
       pinholes); ``dilate_px``: final safety margin in pixels.
@@ -79,7 +80,7 @@ def silhouettes(
                 f"silhouette.background: shape {tuple(bg.shape)} does not match the images "
                 f"{tuple(signal.shape)}"
             )
-        signal = (signal - bg).abs()
+        signal = (signal - bg).clamp_min(0.0)
     signal = signal.amax(dim=1).cpu().numpy()
     masks = []
     for view in signal:

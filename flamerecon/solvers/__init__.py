@@ -1,6 +1,17 @@
 """Solvers for the nonnegative LASSO, registered by name (``solver=<name>``)."""
 
-from .base import SOLVERS, LinearOperator, Problem, SolveResult, Solver, make_solver, register
-from . import fista  # noqa: F401  (registers)
+from . import adam, cgls, fista, lars, sart  # noqa: F401  (registers)
+from .base import (
+    SOLVERS,
+    LinearOperator,
+    Problem,
+    Solver,
+    SolveResult,
+    lambda_max,
+    make_solver,
+    register,
+    resolve_l1,
+)
 
-__all__ = ["SOLVERS", "LinearOperator", "Problem", "SolveResult", "Solver", "make_solver", "register"]
+__all__ = ["SOLVERS", "LinearOperator", "Problem", "SolveResult", "Solver", "lambda_max",
+           "make_solver", "register", "resolve_l1"]

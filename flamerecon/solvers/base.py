@@ -13,8 +13,9 @@ voxels), ``b`` (N, C) the pixel values and ``x`` (M, C) the voxel densities. The
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import Protocol
 
 import torch
 
@@ -142,3 +143,50 @@ def power_norm_sq(A: LinearOperator, M: int, device, dtype=torch.float32, iters:
             return 0.0
         v = w / lam
     return lam
+
+
+def density_scale(A: LinearOperator, b: torch.Tensor) -> torch.Tensor:
+    """Per-channel best constant density c (C,) minimising ||A (c 1) - b||: <A1, b>/||A1||^2.
+
+    A unit-free scale for step sizes; 1 where the fit is degenerate (A 1 = 0 or c <= 0).
+    """
+    ones = torch.ones(A.shape[1], 1, dtype=b.dtype, device=b.device)
+    a1 = A.forward(ones).double()
+    denom = float((a1 * a1).sum())
+    c = (a1 * b.double()).sum(0) / max(denom, 1e-300)
+    return torch.where(c > 0, c, torch.ones_like(c)).to(b.dtype)
+
+
+def lambda_max(A: LinearOperator, b: torch.Tensor) -> float:
+    """max_j (A^T b)_j over voxels and channels: the smallest l1 for which x = 0 is optimal."""
+    return max(float(A.adjoint(b).max()), 0.0)
+
+
+def resolve_l1(
+    problem_or_A: Problem | LinearOperator,
+    b: torch.Tensor | None = None,
+    l1: float | None = 0.0,
+    l1_rel: float | None = None,
+) -> float:
+    """The absolute L1 weight from the config: ``l1`` as given, or ``l1_rel * lambda_max``.
+
+    ``problem_or_A`` is a :class:`Problem` (then ``b`` defaults to its data) or an operator
+    with ``b`` (N, C). Setting both ``solver.l1`` and ``solver.l1_rel`` nonzero is an error.
+    """
+    if isinstance(problem_or_A, Problem):
+        A, b = problem_or_A.A, problem_or_A.b if b is None else b
+    else:
+        A = problem_or_A
+    l1 = 0.0 if l1 is None else float(l1)
+    if l1 < 0:
+        raise ValueError(f"solver.l1 must be >= 0, got {l1}")
+    if l1_rel is None:
+        return l1
+    l1_rel = float(l1_rel)
+    if l1_rel < 0:
+        raise ValueError(f"solver.l1_rel must be >= 0, got {l1_rel}")
+    if l1 != 0.0 and l1_rel != 0.0:
+        raise ValueError(f"set either solver.l1 ({l1}) or solver.l1_rel ({l1_rel}), not both")
+    if b is None:
+        raise ValueError("resolve_l1: solver.l1_rel needs the data b to compute max(A^T b)")
+    return l1_rel * lambda_max(A, b) if l1_rel != 0.0 else l1

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, Problem, SolveResult, Solver, duality_gap, power_norm_sq, register
+from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
 
 
 @register("fista")
