@@ -81,7 +81,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> torch.Tensor:
     target = torch.as_tensor(target, dtype=torch.float64).reshape(-1, 3).expand_as(eye)
     up = torch.as_tensor(up, dtype=torch.float64).reshape(-1, 3).expand_as(eye)
     z = torch.nn.functional.normalize(target - eye, dim=-1)
-    x = torch.nn.functional.normalize(torch.cross(z, -up, dim=-1), dim=-1)
+    x = torch.nn.functional.normalize(torch.cross(z, up, dim=-1), dim=-1)
     y = torch.cross(z, x, dim=-1)
     R = torch.stack([x, y, z], dim=1)  # rows: camera axes in world coordinates
     w2c = torch.eye(4, dtype=torch.float64).repeat(eye.shape[0], 1, 1)

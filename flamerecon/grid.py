@@ -37,7 +37,7 @@ class VoxelGrid:
     resolution: tuple[int, int, int]
 
     @classmethod
-    def from_box(cls, bbox_min, bbox_max, resolution) -> "VoxelGrid":
+    def from_box(cls, bbox_min, bbox_max, resolution) -> VoxelGrid:
         lo = tuple(float(v) for v in bbox_min)
         hi = tuple(float(v) for v in bbox_max)
         if any(h <= l for l, h in zip(lo, hi)):
@@ -94,7 +94,7 @@ class VoxelGrid:
         c = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=torch.float32)
         return lo + c * (hi - lo)
 
-    def scaled(self, factor: float) -> "VoxelGrid":
+    def scaled(self, factor: float) -> VoxelGrid:
         """Same box, resolution multiplied by ``factor`` (coarse-to-fine, finer phantoms)."""
         res = tuple(max(1, round(r * factor)) for r in self.resolution)
         return VoxelGrid(self.bbox_min, self.bbox_max, res)  # type: ignore[arg-type]

@@ -37,15 +37,31 @@ class CsrOperator:
     ``x`` is (M, C) and ``y`` (N, C), float32 on the operator's device.
     """
 
-    def __init__(self, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: tuple[int, int]):
-        """Build from COO triplets (duplicates are summed)."""
+    def __init__(self, A: torch.Tensor, AT: torch.Tensor):
+        """Wrap CSR matrices A (N, M) and A^T (M, N) with int32 indices."""
+        self.A, self.AT = A, AT
+        self.shape = (int(A.shape[0]), int(A.shape[1]))
+
+    @classmethod
+    def from_coo(cls, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape) -> CsrOperator:
+        """Build from COO triplets in any order (duplicates are summed)."""
         N, M = int(shape[0]), int(shape[1])
-        self.shape = (N, M)
         coo = torch.sparse_coo_tensor(torch.stack([rows.long(), cols.long()]), values, (N, M)).coalesce()
-        csr = coo.to_sparse_csr()
-        self.A = _csr32(csr.crow_indices(), csr.col_indices(), csr.values(), (N, M))
-        csc = coo.to_sparse_csc()  # the CSC of A is the CSR of A^T
-        self.AT = _csr32(csc.ccol_indices(), csc.row_indices(), csc.values(), (M, N))
+        r, c = coo.indices()
+        return cls.from_sorted_coo(r, c, coo.values(), (N, M))
+
+    @classmethod
+    def from_sorted_coo(cls, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape) -> CsrOperator:
+        """Build from COO triplets sorted by row, then column, without duplicates."""
+        N, M = int(shape[0]), int(shape[1])
+        crow = torch.zeros(N + 1, dtype=torch.long, device=values.device)
+        crow[1:] = torch.cumsum(torch.bincount(rows, minlength=N), 0)
+        A = _csr32(crow, cols, values, (N, M))
+        order = torch.argsort(cols, stable=True)  # row order is kept within each column
+        ccol = torch.zeros(M + 1, dtype=torch.long, device=values.device)
+        ccol[1:] = torch.cumsum(torch.bincount(cols, minlength=M), 0)
+        AT = _csr32(ccol, rows[order], values[order], (M, N))
+        return cls(A, AT)
 
     @property
     def nnz(self) -> int:
@@ -69,11 +85,7 @@ class CsrOperator:
         return self.AT @ y
 
     def to(self, device) -> CsrOperator:
-        out = object.__new__(CsrOperator)
-        out.shape = self.shape
-        out.A = self.A.to(device)
-        out.AT = self.AT.to(device)
-        return out
+        return CsrOperator(self.A.to(device), self.AT.to(device))
 
     def to_scipy(self):
         """A as ``scipy.sparse.csr_matrix`` (float32), for peers and dumps."""

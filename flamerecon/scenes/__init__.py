@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from .base import Scene, SceneError
 
@@ -28,4 +28,4 @@ def load_scene(cfg) -> Scene:
     return SCENE_LOADERS[name](cfg)
 
 
-__all__ = ["Scene", "SceneError", "SCENE_LOADERS", "register_scene", "load_scene"]
+__all__ = ["SCENE_LOADERS", "Scene", "SceneError", "load_scene", "register_scene"]

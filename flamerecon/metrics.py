@@ -1,0 +1,40 @@
+"""Image and volume quality measures."""
+
+from __future__ import annotations
+
+import math
+
+import kornia
+import torch
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> float:
+    """PSNR in dB of one image (C, H, W) over the full frame; pred is clipped to [0, max_val]."""
+    mse = float(((pred.clamp(0, max_val) - target) ** 2).double().mean())
+    return math.inf if mse == 0 else 10.0 * math.log10(max_val**2 / mse)
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> float:
+    """Mean SSIM (11x11 Gaussian window) of one image (C, H, W)."""
+    return float(kornia.metrics.ssim(pred.clamp(0, max_val)[None], target[None], 11, max_val=max_val).mean())
+
+
+def volume_errors(density: torch.Tensor, truth: torch.Tensor, support: float = 0.05) -> dict[str, float]:
+    """Relative L2 error and support IoU of density (C, nz, ny, nx) against truth (same shape).
+
+    The support is where the channel sum exceeds ``support`` times its maximum.
+    """
+    d, t = density.double(), truth.double()
+    rel = float((d - t).norm() / t.norm().clamp_min(1e-300))
+    ds, ts = d.sum(0), t.sum(0)
+    a, b = ds > support * ds.max(), ts > support * ts.max()
+    union = int((a | b).sum())
+    iou = float((a & b).sum()) / union if union else 1.0
+    return {"rel_l2": rel, "iou": iou}
+
+
+def resample_to(volume: torch.Tensor, shape: tuple[int, int, int]) -> torch.Tensor:
+    """Cell averages of volume (C, nz, ny, nx) on a coarser grid of the same box, (C, *shape)."""
+    if tuple(volume.shape[1:]) == tuple(shape):
+        return volume
+    return torch.nn.functional.interpolate(volume[None], size=shape, mode="area")[0]

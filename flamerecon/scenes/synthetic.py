@@ -1,0 +1,136 @@
+"""The built-in synthetic flame: a procedural, turbulent RGB emission field filmed by a ring
+of cameras, with images rendered from a finer phantom and finer ray steps than any
+reconstruction uses, plus sensor noise (no inverse crime).
+
+World units are arbitrary lengths; y is up. The flame stands on y = 0 inside the box
+x, z in [-0.5, 0.5], y in [0, 1.5]. ``frame`` advances time (a rising, flickering flame).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from ..cameras import intrinsics_matrix, look_at, make_cameras
+from ..grid import VoxelGrid
+from ..projector import render_image
+from . import register_scene
+from .base import Scene
+
+BOX_MIN = (-0.5, 0.0, -0.5)
+BOX_MAX = (0.5, 1.5, 0.5)
+SECONDS_PER_FRAME = 1.0 / 30.0
+
+
+def _noise(points: torch.Tensor, seed: int, octaves: int = 3, base: int = 5) -> torch.Tensor:
+    """Fractal value noise in about [-1, 1] at world points (…, 3), periodic over 4 units."""
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    out = torch.zeros(points.shape[:-1], device=points.device)
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        n = base * 2**o
+        lattice = torch.rand(1, 1, n, n, n, generator=g) * 2 - 1
+        lattice = F.pad(lattice, (0, 1, 0, 1, 0, 1), mode="circular").to(points.device)  # seamless
+        coords = torch.remainder(points / 4.0 + 0.37 * o, 1.0) * 2 - 1  # periodic lookup
+        vals = F.grid_sample(
+            lattice, coords.reshape(1, 1, 1, -1, 3), mode="bilinear", padding_mode="reflection",
+            align_corners=True,
+        )
+        out = out + amp * vals.reshape(points.shape[:-1])
+        total += amp
+        amp *= 0.5
+    return out / total * 1.7
+
+
+def flame_emission(points: torch.Tensor, seed: int = 0, time: float = 0.0) -> torch.Tensor:
+    """RGB emission density (…, 3) at world points (…, 3) at ``time`` seconds.
+
+    A teardrop of hot gas on y = 0 whose outline is pushed around by turbulence that rises
+    with the flow: a bright yellow-white core, redder and fainter towards the edge, and
+    flickering tongues at the top.
+    """
+    x, y, z = points.unbind(-1)
+    rise = 0.9 * time  # turbulence is carried upwards
+    advected = torch.stack([x, y - rise, z], -1)
+    h = (y / 1.25).clamp(0.0, 1.0)
+    amp = 0.05 + 0.2 * h**1.3
+    sway = 0.06 * h**1.5 * math.sin(2 * math.pi * 1.7 * time)
+    xd = x + amp * _noise(advected * 2.0, seed + 1) + sway
+    zd = z + amp * _noise(advected * 2.0, seed + 2)
+    r = torch.sqrt(xd**2 + zd**2)
+    radius = 0.3 * (1 - h) ** 0.75 * ((h + 0.02) / 0.12).clamp(max=1.0) ** 0.5
+    radius = radius * (1 + 0.3 * _noise(advected * 3.0, seed + 3))
+    heat = (1 - r / radius.clamp_min(1e-4)).clamp(0, 1) ** 1.2
+    tongues = torch.sigmoid(8 * (_noise(advected * 2.5, seed + 4) + 1.1 - 1.6 * h))
+    temp = heat * tongues * (1 - 0.55 * h) * (y > 0)
+    rgb = torch.stack([temp**0.8, 0.9 * temp**1.4, 0.7 * temp**2.5], -1)
+    return rgb
+
+
+def flame_volume(grid: VoxelGrid, seed: int = 0, time: float = 0.0, device=None) -> torch.Tensor:
+    """The flame sampled at the cell centres of ``grid``: (3, nz, ny, nx)."""
+    return flame_emission(grid.centers(device), seed, time).permute(3, 0, 1, 2).contiguous()
+
+
+def ring_cameras(n: int, width: int, height: int, radius: float = 3.0, focal: float | None = None):
+    """``n`` cameras on a horizontal ring around the flame, alternating between two
+    elevations, looking at its middle. Returns a kornia camera batch."""
+    angles = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    elev = torch.deg2rad(10.0 + 8.0 * (-1.0) ** torch.arange(n, dtype=torch.float64))
+    target = torch.tensor([0.0, 0.62, 0.0], dtype=torch.float64)
+    eye = torch.stack(
+        [radius * torch.cos(elev) * torch.sin(angles), target[1] + radius * torch.sin(elev),
+         radius * torch.cos(elev) * torch.cos(angles)], -1,
+    )
+    f = focal if focal is not None else 470.0 * height / 240.0
+    K = intrinsics_matrix(f, f, width / 2.0, height / 2.0).expand(n, 3, 3)
+    return make_cameras(K, look_at(eye, target.expand(n, 3)), height, width)
+
+
+def _crop_to_support(volume: torch.Tensor, grid: VoxelGrid) -> tuple[torch.Tensor, VoxelGrid]:
+    """The smallest sub-grid (same cells, one empty cell of border) holding every nonzero."""
+    nz_ = volume.abs().sum(0).nonzero()
+    if nz_.numel() == 0:
+        return volume, grid
+    lo_k = (nz_.amin(0) - 1).clamp_min(0)
+    hi_k = nz_.amax(0) + 2
+    size = grid.voxel_size()
+    lo_ijk, hi_ijk = lo_k.flip(0), hi_k.flip(0)  # (k, j, i) -> (i, j, k)
+    sub = VoxelGrid(
+        tuple((grid.lo() + lo_ijk * size).tolist()),
+        tuple((grid.lo() + hi_ijk.minimum(torch.tensor(grid.resolution)) * size).tolist()),
+        tuple((hi_ijk.minimum(torch.tensor(grid.resolution)) - lo_ijk).tolist()),
+    )
+    v = volume[:, lo_k[0]:hi_k[0], lo_k[1]:hi_k[1], lo_k[2]:hi_k[2]]
+    return v.contiguous(), sub
+
+
+@register_scene("synthetic")
+def load(cfg) -> Scene:
+    """Config keys: n_cameras, width, height, phantom_resolution, phantom_step, noise,
+    frame, seed, peak (brightest pixel before noise)."""
+    n = int(cfg.get("n_cameras", 8))
+    W, H = int(cfg.get("width", 320)), int(cfg.get("height", 240))
+    seed = int(cfg.get("seed", 0))
+    frame = int(cfg.get("frame", 0))
+    cams = ring_cameras(n, W, H)
+    truth_grid = VoxelGrid.from_box(BOX_MIN, BOX_MAX, int(cfg.get("phantom_resolution", 128)))
+    truth = flame_volume(truth_grid, seed, frame * SECONDS_PER_FRAME)
+    cropped, sub = _crop_to_support(truth, truth_grid)
+    clean = render_image(cropped, sub, cams, step=float(cfg.get("phantom_step", 0.5)))
+    scale = float(cfg.get("peak", 0.85)) / float(clean.max().clamp_min(1e-12))
+    clean, truth = clean * scale, truth * scale
+    g = torch.Generator(device="cpu").manual_seed(seed + 1000 * frame + 7)
+    sigma = float(cfg.get("noise", 0.01))
+    # read noise sigma, growing with brightness like photon noise: std = sigma * sqrt(1 + 4 I)
+    std = sigma * torch.sqrt(1 + 4 * clean.clamp_min(0))
+    images = (clean + std * torch.randn(clean.shape, generator=g)).clamp(0, 1)
+    views = [f"cam{i:02d}" for i in range(n)]
+    return Scene(
+        name="synthetic", views=views, cameras=cams, images=images,
+        bbox_min=BOX_MIN, bbox_max=BOX_MAX, default_holdout=[views[-1]],
+        truth=truth, truth_grid=truth_grid, source=f"synthetic flame (seed {seed}, frame {frame})",
+        meta={"noise": sigma, "time": frame * SECONDS_PER_FRAME},
+    )
