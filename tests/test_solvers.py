@@ -26,7 +26,7 @@ def tiny_problem(seed: int = 0, N: int = 80, M: int = 60, C: int = 2, rel: float
 
 def csr(A: np.ndarray) -> CsrOperator:
     r, c = np.nonzero(A)
-    return CsrOperator(torch.tensor(r), torch.tensor(c), torch.tensor(A[r, c]), A.shape)
+    return CsrOperator.from_coo(torch.tensor(r), torch.tensor(c), torch.tensor(A[r, c]), A.shape)
 
 
 def objective(A: np.ndarray, b: np.ndarray, lam: float, x: np.ndarray) -> float:

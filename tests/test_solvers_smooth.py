@@ -50,7 +50,7 @@ def test_fista_smooth_matches_lbfgsb():
     b = (A @ g.random((M, C)) + 0.05 * g.standard_normal((N, C))).astype(np.float32)
     lam = 0.02 * float((A.T @ b).max())
     r, c = np.nonzero(A)
-    op = CsrOperator(torch.tensor(r), torch.tensor(c), torch.tensor(A[r, c]), (N, M))
+    op = CsrOperator.from_coo(torch.tensor(r), torch.tensor(c), torch.tensor(A[r, c]), (N, M))
     problem = Problem(op, torch.tensor(b), lam, grid_shape=GRID, voxel_index=torch.tensor(HULL))
     res = make_solver("fista_smooth", smooth=0.2, tol=1e-5, max_iters=5000).solve(problem)
     s = res.history[-1]["smooth_weight"]
@@ -78,6 +78,6 @@ def test_fista_smooth_matches_lbfgsb():
 
 
 def test_fista_smooth_needs_hull_geometry():
-    op = CsrOperator(torch.tensor([0]), torch.tensor([0]), torch.tensor([1.0]), (1, 1))
+    op = CsrOperator.from_coo(torch.tensor([0]), torch.tensor([0]), torch.tensor([1.0]), (1, 1))
     with pytest.raises(ValueError, match="grid_shape"):
         make_solver("fista_smooth").solve(Problem(op, torch.ones(1, 1)))

@@ -34,7 +34,7 @@ def hull_gradient(grid_shape: tuple[int, int, int], voxel_index: torch.Tensor) -
     rows = torch.arange(E, device=device).repeat(2)
     cols = torch.cat([j, i])
     values = torch.cat([torch.ones(E, device=device), -torch.ones(E, device=device)])
-    return CsrOperator(rows, cols, values, (E, M))
+    return CsrOperator.from_coo(rows, cols, values, (E, M))
 
 
 class StackedOperator:
