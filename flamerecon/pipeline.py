@@ -228,7 +228,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path) -> dict:
     scene = load_scene(cfg.scene)
     setup = prepare(cfg, scene, device)
     l1 = resolve_l1(setup.operator, setup.pixels, cfg.solver.get("l1", 0.0), cfg.solver.get("l1_rel"))
-    problem = Problem(setup.operator, setup.pixels, l1)
+    problem = Problem(setup.operator, setup.pixels, l1, grid_shape=setup.grid.shape,
+                      voxel_index=setup.voxel_index)
     solver = make_solver(cfg.solver.name, **solver_options(cfg))
     writer = RunWriter(str(run_dir))
     monitor = Monitor(setup, writer, cfg, int(cfg.solver.get("max_iters", 0)), device)
