@@ -94,3 +94,50 @@ def remove_gain_offset(
     """Inverse of :func:`apply_gain_offset`: the line integrals a camera's images imply."""
     shape = (-1,) + (1,) * (images.dim() - 1)
     return (images - offset.reshape(shape)) / gain.reshape(shape)
+
+
+def fit_gain_offset_rows(
+    predicted: torch.Tensor,
+    captured: torch.Tensor,
+    view: torch.Tensor,
+    num_views: int,
+    fit_offset: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`fit_gain_offset` for stacked pixel rows, as the solver sees them.
+
+    ``predicted`` and ``captured``: (N, C) values of the rows (e.g. ``A x`` and the data);
+    ``view`` (N,) long: which camera each row belongs to. Returns gain and offset (num_views,);
+    a camera with no rows, or a constant prediction, keeps gain 1 and offset 0.
+    """
+    r = predicted.double().reshape(predicted.shape[0], -1)
+    c = captured.double().reshape(captured.shape[0], -1)
+    idx = view.long()
+
+    def per_view(values: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(num_views, dtype=torch.float64, device=r.device).index_add_(
+            0, idx, values.sum(1)
+        )
+
+    n = per_view(torch.ones_like(r))
+    sr, sc, srr, src = per_view(r), per_view(c), per_view(r * r), per_view(r * c)
+    if fit_offset:
+        var = srr - sr * sr / n.clamp_min(1.0)
+        cov = src - sr * sc / n.clamp_min(1.0)
+        ok = (n > 1) & (var > 1e-20)
+        gain = torch.where(ok, cov / var.clamp_min(1e-20), torch.ones_like(var))
+        offset = torch.where(ok, (sc - gain * sr) / n.clamp_min(1.0), torch.zeros_like(var))
+    else:
+        ok = srr > 1e-20
+        gain = torch.where(ok, src / srr.clamp_min(1e-20), torch.ones_like(srr))
+        offset = torch.zeros_like(gain)
+    return gain.to(predicted.dtype), offset.to(predicted.dtype)
+
+
+def normalize_gains(gain: torch.Tensor) -> torch.Tensor:
+    """Gains (B,) divided by their geometric mean.
+
+    Density and gains trade a common factor (``g * integral`` is unchanged by ``g / a`` and
+    ``a * density``); fixing the geometric mean at 1 lets a camera with no fitted gain (a
+    held-out view) use gain 1 and offset 0. Offsets are unaffected.
+    """
+    return gain / torch.exp(torch.log(gain.clamp_min(1e-12)).mean())

@@ -8,7 +8,9 @@ import torch
 from flamerecon.photometry import (
     apply_gain_offset,
     fit_gain_offset,
+    fit_gain_offset_rows,
     linearize,
+    normalize_gains,
     remove_gain_offset,
     srgb_to_linear,
 )
@@ -49,3 +51,17 @@ def test_gain_offset_fit_recovers_each_camera():
     torch.testing.assert_close(
         remove_gain_offset(captured, gain, offset)[:, :, 2:], rendered[:, :, 2:]
     )
+
+
+def test_gain_offset_fit_on_stacked_rows():
+    g = torch.Generator().manual_seed(2)
+    view = torch.tensor([0] * 50 + [2] * 40)  # camera 1 has no rows
+    predicted = torch.rand(90, 1, generator=g)
+    gain, offset = torch.tensor([0.9, 1.0, 1.2]), torch.tensor([0.01, 0.0, -0.02])
+    captured = predicted * gain[view, None] + offset[view, None]
+    fit_g, fit_o = fit_gain_offset_rows(predicted, captured, view, 3)
+    torch.testing.assert_close(fit_g, gain, atol=1e-5, rtol=0)
+    torch.testing.assert_close(fit_o, offset, atol=1e-5, rtol=0)
+    normalized = normalize_gains(torch.tensor([0.5, 2.0, 1.0]))
+    torch.testing.assert_close(normalized, torch.tensor([0.5, 2.0, 1.0]))
+    torch.testing.assert_close(normalize_gains(torch.tensor([2.0, 8.0])), torch.tensor([0.5, 2.0]))
