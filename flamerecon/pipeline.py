@@ -280,7 +280,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
         solver = make_solver(cfg.solver.name, **solver_options(cfg))
     except ValueError as err:
         raise ConfigError(str(err)) from err
-    problem = Problem(setup.operator, setup.pixels, l1)
+    problem = Problem(setup.operator, setup.pixels, l1, grid_shape=setup.grid.shape,
+                      voxel_index=setup.voxel_index)
     meta = {"solver": cfg.solver.name, "shape": list(setup.operator.shape),
             "channels": int(setup.pixels.shape[1]), "l1": l1}
     x0, start, seconds_before = None, 0, 0.0

@@ -20,7 +20,7 @@ def register_scene(name: str):
 
 def load_scene(cfg) -> Scene:
     """Load the scene described by the ``scene`` config node (needs ``cfg.name``)."""
-    from . import synthetic  # noqa: F401  (registers built-in loaders)
+    from . import nerf, opencv_calib, pinf, synthetic  # noqa: F401  (registers built-in loaders)
 
     name = cfg["name"]
     if name not in SCENE_LOADERS:

@@ -32,11 +32,17 @@ class LinearOperator(Protocol):
 
 @dataclass
 class Problem:
-    """A nonnegative LASSO: operator ``A``, data ``b`` (N, C), absolute weight ``l1`` >= 0."""
+    """A nonnegative LASSO: operator ``A``, data ``b`` (N, C), absolute weight ``l1`` >= 0.
+
+    Optional hull geometry for smoothness-aware solvers: ``grid_shape`` (nz, ny, nx) and
+    ``voxel_index`` (M,) long, the flat index (x fastest) of each unknown in that grid.
+    """
 
     A: LinearOperator
     b: torch.Tensor
     l1: float = 0.0
+    grid_shape: tuple[int, int, int] | None = None
+    voxel_index: torch.Tensor | None = None
 
     def objective_parts(self, x: torch.Tensor) -> dict[str, float]:
         """Data term 0.5||Ax-b||^2, L1 term l1*sum|x| and their sum, as Python floats."""

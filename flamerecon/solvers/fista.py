@@ -24,10 +24,15 @@ class Fista(Solver):
         self.restart = bool(restart)
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
+        return self.iterate(problem, x, callback)
+
+    def iterate(self, problem: Problem, x: torch.Tensor, callback: Callback | None,
+                lipschitz: float | None = None) -> SolveResult:
+        """FISTA from ``x`` (M, C); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
         A, b, lam = problem.A, problem.b, problem.l1
         resume = self._take_resume()
         if resume is None:
-            L = 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
+            L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
             y, t, start, history = x.clone(), 1.0, 1, []
         else:  # continue exactly where state() was taken (x is resume["x"])
             L, t, start = resume["L"], resume["t"], resume["iteration"] + 1
@@ -52,10 +57,10 @@ class Fista(Solver):
                     "gap": gap,
                     "rel_gap": gap / max(primal, 1e-30),
                 }
-                history.append({"iteration": it, **info})
                 if callback is not None:
                     self._state = {"iteration": it, "x": x, "y": y, "t": t, "L": L, "history": history}
-                    callback(it, x, info)
+                    callback(it, x, info)  # may add entries (fista_smooth splits the data term)
+                history.append({"iteration": it, **info})
                 if info["rel_gap"] < self.tol:
                     converged = True
                     break

@@ -1,0 +1,304 @@
+"""What every calibrated-capture loader shares: checking calibration values, finding the data
+folder, turning per-camera images and intrinsics into a Scene's batch (downscaled, linearized,
+one channel count), and choosing the box.
+
+Every check raises :class:`SceneError` with one line that names the file and the field.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ..cameras import make_cameras
+from ..photometry import linearize
+from ..silhouettes import estimate_bbox, silhouettes
+from .base import SceneError
+
+#: repository root (the folder holding ``flamerecon/``), against which relative roots resolve.
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def option(cfg, key: str, default=None):
+    """``cfg[key]`` for a dict or OmegaConf node, ``default`` when absent or null."""
+    value = cfg.get(key, default)
+    return default if value is None else value
+
+
+def resolve_root(root, field: str = "scene.root") -> Path:
+    """The data folder (or file) named by ``root``.
+
+    An absolute path is taken as is. A relative one is tried against the directory the command
+    was started in (Hydra's original cwd), then against the repository root, then, when it
+    starts with ``../shared``, against ``/work/shared``'s parent (a worktree's sibling layout).
+    """
+    if root is None or str(root) == "":
+        raise SceneError(f"config: {field}: no data folder given")
+    path = Path(os.path.expanduser(str(root)))
+    if path.is_absolute():
+        candidates = [path]
+    else:
+        starts = []
+        try:
+            from hydra.utils import get_original_cwd
+
+            starts.append(Path(get_original_cwd()))
+        except (ImportError, ValueError):
+            pass
+        starts += [Path.cwd(), REPO_ROOT]
+        candidates = [s / path for s in starts]
+        if path.parts[:2] == ("..", "shared"):
+            candidates.append(Path("/work") / Path(*path.parts[1:]))
+    for candidate in candidates:
+        if candidate.exists():
+            return candidate.resolve()
+    tried = ", ".join(str(c) for c in dict.fromkeys(candidates))
+    raise SceneError(f"config: {field}: '{root}' does not exist (tried {tried})")
+
+
+def matrix(value, shape: tuple[int, ...], file, field: str) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape``; SceneError naming file and field else."""
+    if value is None:
+        raise SceneError(f"{file}: {field}: missing")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise SceneError(f"{file}: {field}: not a numeric array ({err})") from None
+    vector = len(shape) == 1 and sum(n > 1 for n in arr.shape) <= 1  # (3,), (3, 1), (1, 3)
+    if arr.size == int(np.prod(shape)) and arr.shape != shape and (arr.ndim <= 1 or vector):
+        arr = arr.reshape(shape)
+    if arr.shape != shape:
+        raise SceneError(f"{file}: {field}: expected shape {shape}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise SceneError(f"{file}: {field}: holds NaN or Inf")
+    return arr
+
+
+def positive(value, file, field: str) -> float:
+    """``value`` as a finite positive float."""
+    if value is None:
+        raise SceneError(f"{file}: {field}: missing")
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise SceneError(f"{file}: {field}: not a number ({value!r})") from None
+    if not np.isfinite(x) or x <= 0:
+        raise SceneError(f"{file}: {field}: must be a positive finite number, got {value}")
+    return x
+
+
+def check_intrinsics(K: np.ndarray, file, field: str) -> np.ndarray:
+    """A 3x3 pinhole K with positive focal lengths and last row (0, 0, 1)."""
+    K = matrix(K, (3, 3), file, field)
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise SceneError(
+            f"{file}: {field}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}"
+        )
+    if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9) or abs(K[1, 0]) > 1e-9:
+        raise SceneError(
+            f"{file}: {field}: not an intrinsics matrix (rows 2-3 must be [0 fy cy], [0 0 1])"
+        )
+    return K
+
+
+def check_rotation(
+    R: np.ndarray, file, field: str, tol: float = 1e-3, proper: bool = True
+) -> np.ndarray:
+    """An orthonormal 3x3 (R R^T = I within ``tol``), with det R = +1 when ``proper``."""
+    R = matrix(R, (3, 3), file, field)
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > tol:
+        raise SceneError(f"{file}: {field}: rotation is not orthonormal (|R R^T - I| = {err:.2g})")
+    if proper and np.linalg.det(R) < 0:
+        raise SceneError(f"{file}: {field}: rotation has determinant -1 (a reflection)")
+    return R
+
+
+def check_rigid(T: np.ndarray, file, field: str, proper: bool = True) -> np.ndarray:
+    """A 4x4 rigid transform: orthonormal rotation block, last row (0, 0, 0, 1)."""
+    T = matrix(T, (4, 4), file, field)
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise SceneError(f"{file}: {field}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    check_rotation(T[:3, :3], file, field, proper=proper)
+    return T
+
+
+def check_image_size(
+    image: np.ndarray, height: int, width: int, image_file, calib_file, field: str
+):
+    """SceneError when an image's size disagrees with its calibration."""
+    h, w = image.shape[:2]
+    if (h, w) != (int(height), int(width)):
+        raise SceneError(
+            f"{image_file}: image is {w}x{h} (WxH) but {calib_file}: {field} says "
+            f"{int(width)}x{int(height)}"
+        )
+
+
+def downscale_factor(cfg) -> int:
+    """``scene.downscale`` as a positive int (1 = native resolution)."""
+    value = option(cfg, "downscale", 1)
+    if isinstance(value, bool) or int(value) != value or int(value) < 1:
+        raise SceneError(f"config: scene.downscale: must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def downscale_view(image: np.ndarray, K: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Shrink an image (H, W, C) by area averaging and scale K (pixel centres at +0.5) to match.
+
+    With centres at +0.5 a continuous pixel coordinate scales exactly by the size ratio, so
+    fx, cx scale by W'/W and fy, cy by H'/H (H' = H // factor).
+    """
+    if factor == 1:
+        return image, K
+    H, W = image.shape[:2]
+    h, w = H // factor, W // factor
+    if h < 1 or w < 1:
+        raise SceneError(f"config: scene.downscale: {factor} leaves no pixels of a {W}x{H} image")
+    small = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+    if small.ndim == 2:
+        small = small[:, :, None]
+    S = np.diag([w / W, h / H, 1.0])
+    return small, S @ K
+
+
+def to_channels(images: list[np.ndarray], channels) -> list[np.ndarray]:
+    """Give every image (H, W, C) the same channel count: ``channels`` = 1, 3 or ``"auto"``.
+
+    ``auto`` keeps one channel when every image is grayscale (one channel, or three equal within
+    3/255, as videos of gray scenes decode), three otherwise.
+    """
+    if channels == "auto":
+        gray = all(
+            im.shape[2] == 1 or float(np.abs(im - im.mean(2, keepdims=True)).max()) <= 3 / 255
+            for im in images
+        )
+        channels = 1 if gray else 3
+    if channels not in (1, 3):
+        raise SceneError(f"config: scene.channels: must be 1, 3 or 'auto', got {channels!r}")
+    out = []
+    for im in images:
+        if im.shape[2] == channels:
+            out.append(im)
+        elif channels == 3:
+            out.append(np.repeat(im, 3, axis=2))
+        else:
+            luma = im @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+            out.append(luma[:, :, None])
+    return out
+
+
+def stack_views(images: list[np.ndarray], sources: list) -> torch.Tensor:
+    """Per-view images (H, W, C) of one size -> (B, C, H, W) float32."""
+    sizes = {im.shape for im in images}
+    if len(sizes) > 1:
+        listing = ", ".join(f"{s}: {im.shape[1]}x{im.shape[0]}" for s, im in zip(sources, images))
+        raise SceneError(
+            f"images: views differ in size after loading ({listing}); flamerecon needs one size"
+        )
+    return torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous().float()
+
+
+def build_views(
+    cfg,
+    names: list[str],
+    images: list[np.ndarray],
+    Ks: list[np.ndarray],
+    w2cs: list[np.ndarray],
+    sources: list,
+):
+    """Downscale, unify channels, linearize, and build the camera batch.
+
+    ``images``: per view (H, W, C) float32 in [0, 1] at native size; ``Ks``: per view 3x3 with
+    pixel centres at +0.5; ``w2cs``: per view OpenCV world->camera 4x4. Returns
+    (cameras, images (B, C, H, W)).
+    """
+    factor = downscale_factor(cfg)
+    small, Ks_small = [], []
+    for im, K in zip(images, Ks):
+        s, k = downscale_view(im, K, factor)
+        small.append(s)
+        Ks_small.append(k)
+    small = to_channels(small, option(cfg, "channels", "auto"))
+    batch = stack_views(small, sources)
+    try:
+        batch = linearize(batch, option(cfg, "gamma", 1.0), float(option(cfg, "black_level", 0.0)))
+    except ValueError as err:
+        raise SceneError(f"config: {err}") from None
+    H, W = batch.shape[-2:]
+    cams = make_cameras(
+        torch.from_numpy(np.stack(Ks_small)).float(),
+        torch.from_numpy(np.stack(w2cs)).float(),
+        torch.full((len(names),), H),
+        torch.full((len(names),), W),
+    )
+    return cams, batch
+
+
+def box_from_config(cfg, field: str = "scene.bbox"):
+    """``scene.bbox`` = [[xmin, ymin, zmin], [xmax, ymax, zmax]] or None when unset."""
+    value = option(cfg, "bbox", None)
+    if value is None:
+        return None
+    return box_from_value(value, "config", field)
+
+
+def box_from_value(value, file, field: str):
+    """A [[min xyz], [max xyz]] value checked: finite, min < max on every axis."""
+    box = matrix(value, (2, 3), file, field)
+    if not (box[0] < box[1]).all():
+        raise SceneError(
+            f"{file}: {field}: min must be below max on every axis, got {box.tolist()}"
+        )
+    return tuple(box[0].tolist()), tuple(box[1].tolist())
+
+
+def silhouette_options(cfg) -> dict:
+    """Keyword arguments for :func:`~flamerecon.silhouettes.silhouettes` from the config."""
+    node = option(cfg, "silhouette", {}) or {}
+    keys = ("method", "threshold", "dilate_px", "blur_px", "open_px", "close_px")
+    return {k: node[k] for k in keys if k in node and node[k] is not None}
+
+
+def choose_box(cfg, file_box, cams, images: torch.Tensor, source) -> tuple[tuple, tuple, str]:
+    """The scene's box: ``scene.bbox`` from the config, else the file's, else estimated from the
+    silhouette cones. Returns (bbox_min, bbox_max, where it came from)."""
+    configured = box_from_config(cfg)
+    if configured is not None:
+        return configured[0], configured[1], "config scene.bbox"
+    if file_box is not None:
+        return file_box[0], file_box[1], f"{source}"
+    try:
+        masks = silhouettes(images, **silhouette_options(cfg))
+        lo, hi = estimate_bbox(cams, masks)
+    except ValueError as err:
+        raise SceneError(f"{source}: no box in the file or config, and {err}") from None
+    return lo, hi, "silhouette cones"
+
+
+def distortion(value, file, field: str) -> np.ndarray:
+    """OpenCV distortion coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]) as a flat array."""
+    try:
+        d = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as err:
+        raise SceneError(f"{file}: {field}: not a list of numbers ({err})") from None
+    if d.size not in (0, 4, 5, 8, 12, 14):
+        raise SceneError(f"{file}: {field}: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
+    if not np.isfinite(d).all():
+        raise SceneError(f"{file}: {field}: holds NaN or Inf")
+    return d
+
+
+def undistort(image: np.ndarray, K_opencv: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Remove lens distortion from an image (H, W, C), keeping the same K.
+
+    ``K_opencv`` uses OpenCV's pixel convention (index k at coordinate k), as ``cv2.undistort``.
+    """
+    if dist.size == 0 or not np.any(dist):
+        return image
+    out = cv2.undistort(image, K_opencv, dist)
+    return out[:, :, None] if out.ndim == 2 else out

@@ -1,0 +1,166 @@
+"""One camera's frame, read from a video file or from a folder of numbered images.
+
+A camera named ``NAME`` (or ``NAME.mp4``, as PINF's ``file_name`` writes it) finds its frame
+``n`` in the first of these that exists under the scene folder:
+
+- the named file itself when it is a video (``NAME.mp4``, ``.avi``, ``.mov``, ``.mkv``);
+- a folder ``NAME/`` holding ``NNNNNN.png`` (six digits, any common image extension);
+- a video ``NAME.<ext>`` for the extensions above.
+
+Images come back as float32 arrays (H, W, C) in [0, 1], C = 1 (grayscale) or 3 (RGB);
+an alpha channel is composited over black (the emission model's empty background).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .base import SceneError
+
+VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".exr", ".pgm", ".ppm")
+
+
+def _to_float_rgb(raw: np.ndarray, path: Path) -> np.ndarray:
+    """Decoded OpenCV array (H, W[, C]) in BGR(A) -> float32 (H, W, 1 or 3) RGB in [0, 1]."""
+    if raw.dtype == np.uint8:
+        img = raw.astype(np.float32) / 255.0
+    elif raw.dtype == np.uint16:
+        img = raw.astype(np.float32) / 65535.0
+    elif raw.dtype in (np.float32, np.float64):
+        img = raw.astype(np.float32)
+    else:
+        raise SceneError(f"{path}: pixel type {raw.dtype} is not supported (uint8, uint16, float)")
+    if img.ndim == 2:
+        img = img[:, :, None]
+    channels = img.shape[2]
+    if channels == 4:
+        img = img[:, :, :3] * img[:, :, 3:4]
+    elif channels == 2:
+        img = img[:, :, :1] * img[:, :, 1:2]
+    if img.shape[2] == 3:
+        img = img[:, :, ::-1]
+    if not np.isfinite(img).all():
+        raise SceneError(f"{path}: pixel values: the image holds NaN or Inf")
+    return np.ascontiguousarray(img)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Decode one image file to float32 (H, W, C) in [0, 1] (alpha composited over black)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"{path}: image file not found")
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.size == 0:
+        raise SceneError(f"{path}: cannot decode the image (corrupt file or unknown format)")
+    return _to_float_rgb(raw, path)
+
+
+def video_length(path: str | Path) -> int:
+    """Number of frames a video holds, counted by decoding (container counts can lie)."""
+    path = Path(path)
+    cap = cv2.VideoCapture(str(path))
+    try:
+        if not cap.isOpened():
+            raise SceneError(f"{path}: cannot open the video (corrupt file or unsupported codec)")
+        count = 0
+        while cap.grab():
+            count += 1
+        return count
+    finally:
+        cap.release()
+
+
+def read_video_frame(path: str | Path, frame: int) -> np.ndarray:
+    """Decode frame ``frame`` (0-based) of a video to float32 (H, W, C) in [0, 1].
+
+    Frames are decoded in order from the start rather than seeked, which is exact for every
+    codec (seeking lands on key frames for some).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"{path}: video file not found")
+    if frame < 0:
+        raise SceneError(f"{path}: frame {frame}: frame index must be >= 0")
+    cap = cv2.VideoCapture(str(path))
+    try:
+        if not cap.isOpened():
+            raise SceneError(f"{path}: cannot open the video (corrupt file or unsupported codec)")
+        for index in range(frame + 1):
+            if not cap.grab():
+                if index == 0:
+                    raise SceneError(f"{path}: cannot decode any frame of the video")
+                raise SceneError(
+                    f"{path}: frame {frame}: beyond the end of the video ({index} frames)"
+                )
+        ok, raw = cap.retrieve()
+    finally:
+        cap.release()
+    if not ok or raw is None:
+        raise SceneError(f"{path}: frame {frame}: cannot decode this frame")
+    return _to_float_rgb(raw, path)
+
+
+def frame_source(root: str | Path, name: str) -> Path:
+    """The video file or frame folder holding camera ``name``'s frames under ``root``."""
+    root = Path(root)
+    direct = root / name
+    if direct.is_file() and direct.suffix.lower() in VIDEO_EXTENSIONS:
+        return direct
+    stem = Path(name).stem if Path(name).suffix.lower() in VIDEO_EXTENSIONS else name
+    folder = root / stem
+    if folder.is_dir():
+        return folder
+    for ext in VIDEO_EXTENSIONS:
+        video = root / f"{stem}{ext}"
+        if video.is_file():
+            return video
+    raise SceneError(
+        f"{root}: camera '{name}': found neither a video {stem}.mp4 (or "
+        f"{'/'.join(VIDEO_EXTENSIONS[1:])}) nor a folder of frames {stem}/"
+    )
+
+
+def frame_file(folder: Path, frame: int) -> Path:
+    """The image of frame ``frame`` in a folder of numbered frames (``000059.png``, ``59.png``)."""
+    for stem in (f"{frame:06d}", str(frame)):
+        for ext in IMAGE_EXTENSIONS:
+            for candidate in (folder / f"{stem}{ext}", folder / f"{stem}{ext.upper()}"):
+                if candidate.is_file():
+                    return candidate
+    have = sorted(p.stem for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    listing = (
+        f"frames {', '.join(have[:6])}{', ...' if len(have) > 6 else ''}" if have else "no images"
+    )
+    raise SceneError(f"{folder}: frame {frame}: no file {frame:06d}.png there (it has {listing})")
+
+
+def read_camera_frame(root: str | Path, name: str, frame: int) -> tuple[np.ndarray, Path]:
+    """Frame ``frame`` of camera ``name``: (image (H, W, C) float32 in [0, 1], its file)."""
+    source = frame_source(root, name)
+    if source.is_dir():
+        path = frame_file(source, frame)
+        return read_image(path), path
+    return read_video_frame(source, frame), source
+
+
+def read_path_frame(base: str | Path, relpath: str, frame: int) -> tuple[np.ndarray, Path]:
+    """Frame ``frame`` of whatever ``relpath`` (relative to ``base``) names: an image file (the
+    frame number is then ignored), an image named without its extension (NeRF's
+    ``./train/r_0``), a video, or a folder of numbered frames."""
+    path = Path(base) / relpath
+    if path.is_dir():
+        file = frame_file(path, frame)
+        return read_image(file), file
+    if path.is_file():
+        if path.suffix.lower() in VIDEO_EXTENSIONS:
+            return read_video_frame(path, frame), path
+        return read_image(path), path
+    for ext in IMAGE_EXTENSIONS:
+        candidate = path.with_name(path.name + ext)
+        if candidate.is_file():
+            return read_image(candidate), candidate
+    raise SceneError(f"{path}: image file not found")

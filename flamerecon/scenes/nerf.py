@@ -1,0 +1,150 @@
+"""NeRF / instant-ngp / nerfstudio ``transforms.json`` captures.
+
+Top level (each may be overridden per frame): ``camera_angle_x`` (and ``camera_angle_y``) or
+``fl_x`` / ``fl_y`` / ``cx`` / ``cy``, ``w`` / ``h``, distortion ``k1 k2 p1 p2`` (``k3``);
+``frames``: list of ``file_path`` (relative to the json; may omit ``.png``, or name a video or a
+frame folder, read at ``scene.frame``) and ``transform_matrix`` (camera->world, OpenGL axes).
+Optional ``bbox`` = [[xmin, ymin, zmin], [xmax, ymax, zmax]] gives the box.
+
+``cx``/``cy`` follow instant-ngp and nerfstudio (pixel centres at +0.5, as here), so they are
+used unchanged; without them the principal point is the image centre (W/2, H/2).
+Images are undistorted when distortion coefficients are given.
+
+Config (``scene`` node): ``root`` (folder or the json), ``file`` (default transforms.json),
+``frame``, ``downscale``, ``channels``, ``gamma``, ``black_level``, ``bbox``, ``holdout`` (view
+names held out by default), ``silhouette``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..cameras import opengl_c2w_to_opencv_w2c
+from . import register_scene
+from .base import Scene, SceneError
+from .calibration import (
+    box_from_value,
+    build_views,
+    check_image_size,
+    check_rigid,
+    choose_box,
+    distortion,
+    option,
+    positive,
+    resolve_root,
+    undistort,
+)
+from .frames import read_path_frame
+
+_DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+def _read_transforms(root: Path, file_name: str) -> tuple[dict, Path]:
+    path = root / file_name if root.is_dir() else root
+    if not path.is_file():
+        raise SceneError(f"{path}: transforms file not found")
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise SceneError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
+        raise SceneError(f"{path}: frames: missing or empty")
+    return data, path
+
+
+def _intrinsics(params: dict, width: int, height: int, path, where: str) -> np.ndarray:
+    """K (pixel centres at +0.5) from fl_x/fl_y/cx/cy or camera_angle_x/y."""
+    if "fl_x" in params:
+        fx = positive(params["fl_x"], path, f"{where}fl_x")
+    elif "camera_angle_x" in params:
+        angle = positive(params["camera_angle_x"], path, f"{where}camera_angle_x")
+        if angle >= math.pi:
+            raise SceneError(
+                f"{path}: {where}camera_angle_x: {angle} rad is not a field of view below pi"
+            )
+        fx = 0.5 * width / math.tan(0.5 * angle)
+    else:
+        raise SceneError(f"{path}: {where}camera_angle_x: missing (and no fl_x)")
+    if "fl_y" in params:
+        fy = positive(params["fl_y"], path, f"{where}fl_y")
+    elif "camera_angle_y" in params:
+        fy = (
+            0.5
+            * height
+            / math.tan(0.5 * positive(params["camera_angle_y"], path, f"{where}camera_angle_y"))
+        )
+    else:
+        fy = fx
+    cx = float(params.get("cx", 0.5 * width))
+    cy = float(params.get("cy", 0.5 * height))
+    if not (math.isfinite(cx) and math.isfinite(cy)):
+        raise SceneError(f"{path}: {where}cx/cy: NaN or Inf")
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _view_names(paths: list[str]) -> list[str]:
+    """Short unique names: file stems, or the relative paths without extension when stems clash."""
+    stems = [Path(p).stem if Path(p).suffix else Path(p).name for p in paths]
+    if len(set(stems)) == len(stems):
+        return stems
+    return [str(Path(p).with_suffix("")).lstrip("./") for p in paths]
+
+
+@register_scene("nerf")
+def load_nerf(cfg) -> Scene:
+    """Load a ``transforms.json`` capture as a Scene (views in file order)."""
+    root = resolve_root(option(cfg, "root"))
+    data, path = _read_transforms(root, str(option(cfg, "file", "transforms.json")))
+    folder = path.parent
+    frame = int(option(cfg, "frame", 0))
+    images, Ks, w2cs, sources, file_paths = [], [], [], [], []
+    for i, entry in enumerate(data["frames"]):
+        where = f"frames[{i}]."
+        if not isinstance(entry, dict):
+            raise SceneError(f"{path}: frames[{i}]: must be an object")
+        file_path = entry.get("file_path")
+        if not isinstance(file_path, str) or not file_path:
+            raise SceneError(f"{path}: {where}file_path: missing")
+        params = {**{k: v for k, v in data.items() if k != "frames"}, **entry}
+        c2w = check_rigid(entry.get("transform_matrix"), path, f"{where}transform_matrix")
+        image, source = read_path_frame(folder, file_path, frame)
+        H, W = image.shape[:2]
+        if "w" in params or "h" in params:
+            check_image_size(
+                image, params.get("h", H), params.get("w", W), source, path, f"{where}w/h"
+            )
+        K = _intrinsics(params, W, H, path, where)
+        dist = distortion([params.get(k, 0.0) for k in _DISTORTION_KEYS], path, f"{where}k1..k3")
+        K_opencv = K - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+        images.append(undistort(image, K_opencv, dist))
+        Ks.append(K)
+        w2cs.append(opengl_c2w_to_opencv_w2c(torch.from_numpy(c2w)).double().numpy())
+        sources.append(source)
+        file_paths.append(file_path)
+    names = _view_names(file_paths)
+    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
+    file_box = box_from_value(data["bbox"], path, "bbox") if "bbox" in data else None
+    lo, hi, box_source = choose_box(cfg, file_box, cams, batch, path)
+    holdout = list(option(cfg, "holdout", []))
+    unknown = [h for h in holdout if h not in names]
+    if unknown:
+        raise SceneError(
+            f"config: scene.holdout: views {unknown} are not in {path} (it has {names})"
+        )
+    return Scene(
+        name=str(option(cfg, "name", "nerf")),
+        views=names,
+        cameras=cams,
+        images=batch,
+        bbox_min=lo,
+        bbox_max=hi,
+        default_holdout=holdout,
+        source=str(path),
+        meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source)},
+    )

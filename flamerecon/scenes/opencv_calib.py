@@ -1,0 +1,242 @@
+"""OpenCV calibrations: per camera K, distortion, and world->camera R (or rvec) and t.
+
+One file (``cv2.FileStorage`` YAML/XML, or JSON) holding ``cameras``, a list of maps (each with
+``name``) or a map from name to camera; or a folder with one such file per camera (the name is
+the file's stem). Per camera, with the spellings OpenCV's samples use:
+
+- ``K`` | ``camera_matrix`` | ``cameraMatrix``: 3x3, OpenCV pixel convention (index k at k);
+- ``dist`` | ``D`` | ``distortion_coefficients`` | ``distCoeffs``: optional, 4-14 values;
+- ``R`` (3x3) or ``rvec`` (Rodrigues, 3), and ``t`` | ``T`` | ``tvec`` (3): x_cam = R x_world + t;
+- ``width``/``height`` | ``image_width``/``image_height`` | ``image_size`` [w, h]: optional,
+  checked against the image;
+- ``image``: optional path (image, video or frame folder) relative to the file; by default
+  the camera's frames are found by name (``NAME.mp4`` or ``NAME/NNNNNN.png``).
+
+Optional at the top level: ``bbox`` [[min xyz], [max xyz]] and ``holdout`` (view names).
+Images are undistorted with ``cv2.undistort`` at native resolution, keeping K; the scene's K
+is shifted by +0.5 to flamerecon's pixel centres.
+
+Config (``scene`` node): ``root`` (the file or the folder), ``calibration`` (file or folder
+name inside ``root``; default: the first of calibration.yaml/.yml/.xml/.json), ``frame``,
+``downscale``, ``channels``, ``gamma``, ``black_level``, ``bbox``, ``holdout``, ``silhouette``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from . import register_scene
+from .base import Scene, SceneError
+from .calibration import (
+    box_from_value,
+    build_views,
+    check_image_size,
+    check_intrinsics,
+    check_rotation,
+    choose_box,
+    distortion,
+    matrix,
+    option,
+    resolve_root,
+    undistort,
+)
+from .frames import read_camera_frame, read_path_frame
+
+CALIBRATION_SUFFIXES = (".yaml", ".yml", ".xml", ".json")
+_ALIASES = {
+    "K": ("K", "camera_matrix", "cameraMatrix"),
+    "dist": ("dist", "D", "distortion_coefficients", "distCoeffs"),
+    "R": ("R",),
+    "rvec": ("rvec",),
+    "t": ("t", "T", "tvec"),
+    "width": ("width", "image_width"),
+    "height": ("height", "image_height"),
+    "image_size": ("image_size",),
+}
+
+
+def _from_file_node(node: cv2.FileNode):
+    """A cv2.FileNode as plain Python: maps, lists, numbers, strings, arrays for matrices."""
+    if node.isNone():
+        return None
+    if node.isMap():
+        keys = node.keys()
+        if {"rows", "cols", "data"} <= set(keys) or {"sizes", "data"} <= set(keys):
+            return node.mat()  # opencv-matrix or opencv-nd-matrix
+        return {k: _from_file_node(node.getNode(k)) for k in keys}
+    if node.isSeq():
+        return [_from_file_node(node.at(i)) for i in range(node.size())]
+    if node.isString():
+        return node.string()
+    if node.isInt():
+        return int(node.real())
+    return node.real()
+
+
+def read_calibration_file(path: Path) -> dict:
+    """Parse a YAML/XML (cv2.FileStorage, or plain YAML) or JSON calibration into a dict."""
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        try:
+            with open(path) as f:
+                data = json.load(f)
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise SceneError(f"{path}: not valid JSON ({err})") from None
+    else:
+        with open(path, "rb") as f:
+            head = f.read(16)
+        if suffix == ".xml" or head.startswith(b"%YAML"):
+            try:
+                fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+            except cv2.error as err:
+                raise SceneError(
+                    f"{path}: cv2.FileStorage cannot parse it ({str(err).strip()[:120]})"
+                ) from None
+            try:
+                if not fs.isOpened():
+                    raise SceneError(f"{path}: cv2.FileStorage cannot open it")
+                data = _from_file_node(fs.root())
+            finally:
+                fs.release()
+        else:
+            try:
+                with open(path) as f:
+                    data = yaml.safe_load(f)
+            except yaml.YAMLError as err:
+                raise SceneError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise SceneError(f"{path}: top level must be a map")
+    return data
+
+
+def _get(entry: dict, key: str):
+    for alias in _ALIASES[key]:
+        if alias in entry:
+            return alias, entry[alias]
+    return _ALIASES[key][0], None
+
+
+def _camera_list(root: Path, calibration) -> tuple[list[tuple[str, dict, Path, str]], dict, Path]:
+    """(name, entry, file, field prefix) per camera, the top-level map, and the calibration path."""
+    if root.is_file():
+        path = root
+    elif calibration:
+        path = root / str(calibration)
+    else:
+        found = [
+            root / f"calibration{s}"
+            for s in CALIBRATION_SUFFIXES
+            if (root / f"calibration{s}").is_file()
+        ]
+        if not found:
+            raise SceneError(f"{root}: no calibration.yaml/.yml/.xml/.json (set scene.calibration)")
+        path = found[0]
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in CALIBRATION_SUFFIXES)
+        if not files:
+            raise SceneError(f"{path}: no per-camera calibration files (*.yaml, *.xml, *.json)")
+        return [(p.stem, read_calibration_file(p), p, "") for p in files], {}, path
+    if not path.is_file():
+        raise SceneError(f"{path}: calibration file not found")
+    data = read_calibration_file(path)
+    cameras = data.get("cameras")
+    if isinstance(cameras, dict):
+        items = [(str(k), v, f"cameras.{k}.") for k, v in cameras.items()]
+    elif isinstance(cameras, list) and cameras:
+        items = []
+        for i, v in enumerate(cameras):
+            if not isinstance(v, dict) or not v.get("name"):
+                raise SceneError(f"{path}: cameras[{i}].name: missing")
+            items.append((str(v["name"]), v, f"cameras[{i}]."))
+    else:
+        raise SceneError(f"{path}: cameras: missing or empty (a list of camera maps)")
+    for _, v, where in items:
+        if not isinstance(v, dict):
+            raise SceneError(f"{path}: {where.rstrip('.')}: must be a map")
+    return [(name, v, path, where) for name, v, where in items], data, path
+
+
+def _pose(entry: dict, file, where: str) -> np.ndarray:
+    """OpenCV world->camera 4x4 from R or rvec, and t."""
+    key, R = _get(entry, "R")
+    if R is not None:
+        R = check_rotation(R, file, f"{where}{key}")
+    else:
+        key, rvec = _get(entry, "rvec")
+        if rvec is None:
+            raise SceneError(f"{file}: {where}R: missing (give R or rvec)")
+        R = cv2.Rodrigues(matrix(rvec, (3,), file, f"{where}{key}"))[0]
+    key, t = _get(entry, "t")
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = matrix(t, (3,), file, f"{where}{key}")
+    return w2c
+
+
+def _expected_size(entry: dict, file, where: str) -> tuple[int, int] | None:
+    """(H, W) the calibration states, or None."""
+    key, size = _get(entry, "image_size")
+    if size is not None:
+        w, h = matrix(size, (2,), file, f"{where}{key}")
+        return int(h), int(w)
+    _, w = _get(entry, "width")
+    _, h = _get(entry, "height")
+    if w is None and h is None:
+        return None
+    if w is None or h is None:
+        raise SceneError(f"{file}: {where}width/height: give both or neither")
+    return int(h), int(w)
+
+
+@register_scene("opencv")
+def load_opencv(cfg) -> Scene:
+    """Load cameras calibrated with OpenCV (K, dist, R|rvec, t) and their images as a Scene."""
+    root = resolve_root(option(cfg, "root"))
+    cameras, top, path = _camera_list(root, option(cfg, "calibration", None))
+    folder = path.parent if path.is_file() else path
+    data_folder = root if root.is_dir() else root.parent
+    frame = int(option(cfg, "frame", 0))
+    names, images, Ks, w2cs, sources = [], [], [], [], []
+    for name, entry, file, where in cameras:
+        if name in names:
+            raise SceneError(f"{file}: {where}name: camera '{name}' appears twice")
+        key, K = _get(entry, "K")
+        K = check_intrinsics(K, file, f"{where}{key}")
+        key, dist = _get(entry, "dist")
+        dist = distortion(dist, file, f"{where}{key}")
+        w2c = _pose(entry, file, where)
+        if entry.get("image"):
+            image, source = read_path_frame(folder, str(entry["image"]), frame)
+        else:
+            image, source = read_camera_frame(data_folder, name, frame)
+        size = _expected_size(entry, file, where)
+        if size is not None:
+            check_image_size(image, size[0], size[1], source, file, f"{where}width/height")
+        images.append(undistort(image, K, dist))
+        Ks.append(K + np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]]))
+        w2cs.append(w2c)
+        names.append(name)
+        sources.append(source)
+    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
+    file_box = box_from_value(top["bbox"], path, "bbox") if "bbox" in top else None
+    lo, hi, box_source = choose_box(cfg, file_box, cams, batch, path)
+    holdout = list(option(cfg, "holdout", None) or top.get("holdout") or [])
+    unknown = [h for h in holdout if h not in names]
+    if unknown:
+        raise SceneError(f"{path}: holdout: views {unknown} are not among the cameras {names}")
+    return Scene(
+        name=str(option(cfg, "name", "opencv")),
+        views=names,
+        cameras=cams,
+        images=batch,
+        bbox_min=lo,
+        bbox_max=hi,
+        default_holdout=holdout,
+        source=str(path),
+        meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source)},
+    )

@@ -1,0 +1,142 @@
+"""PINF / HyFluid ``info.json`` captures (the ScalarFlow smoke of ``shared/data``).
+
+``info.json`` lists cameras in ``train_videos`` and ``test_videos``; each has ``file_name``
+(its video; frames may also sit in a folder of that name without ``.mp4``),
+``transform_matrix`` (camera->world, OpenGL axes), ``camera_angle_x`` (horizontal field of
+view, radians) and ``camera_hw`` = [H, W]. PINF's intrinsics: f = 0.5 W / tan(0.5 angle),
+principal point (W/2, H/2) with pixel index k at coordinate k, so ours is (W/2 + 0.5, H/2 + 0.5).
+The smoke box: PINF swaps columns 0 and 2 of ``voxel_matrix``; world = M (p * voxel_scale) for
+p in [0, 1]^3; the scene keeps the axis-aligned box around those eight corners.
+
+Config (``scene`` node): ``root`` (the folder or the info.json), ``frame``, ``downscale``,
+``channels``, ``gamma``, ``black_level``, ``bbox`` (overrides the file's box), ``silhouette``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..cameras import opengl_c2w_to_opencv_w2c
+from . import register_scene
+from .base import Scene, SceneError
+from .calibration import (
+    build_views,
+    check_image_size,
+    check_rigid,
+    choose_box,
+    matrix,
+    option,
+    positive,
+    resolve_root,
+)
+from .frames import read_camera_frame
+
+
+def pinf_box(info: dict, file) -> tuple[tuple, tuple] | None:
+    """Axis-aligned world box of PINF's ``voxel_matrix`` / ``voxel_scale``, or None if absent."""
+    if "voxel_matrix" not in info and "voxel_scale" not in info:
+        return None
+    # PINF's column swap makes the matrix a reflection, so only orthonormality is required
+    M = check_rigid(info.get("voxel_matrix"), file, "voxel_matrix", proper=False)
+    scale = matrix(info.get("voxel_scale"), (3,), file, "voxel_scale")
+    if (scale <= 0).any():
+        raise SceneError(f"{file}: voxel_scale: must be positive, got {scale.tolist()}")
+    M = M[:, [2, 1, 0, 3]]  # PINF's column swap
+    unit = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.float64)
+    corners = (unit * scale) @ M[:3, :3].T + M[:3, 3]
+    return tuple(corners.min(0).tolist()), tuple(corners.max(0).tolist())
+
+
+def _read_info(root: Path) -> tuple[dict, Path]:
+    path = root / "info.json" if root.is_dir() else root
+    if not path.is_file():
+        raise SceneError(f"{path}: info.json not found")
+    try:
+        with open(path) as f:
+            info = json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise SceneError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(info, dict):
+        raise SceneError(f"{path}: top level must be an object with train_videos / test_videos")
+    return info, path
+
+
+def _camera_entries(info: dict, path: Path) -> list[tuple[str, dict, bool]]:
+    """(field path, entry, held out) for every camera, in file order: train then test."""
+    entries = []
+    for key, held in (("train_videos", False), ("test_videos", True)):
+        value = info.get(key, [])
+        if not isinstance(value, list):
+            raise SceneError(f"{path}: {key}: must be a list of cameras")
+        entries += [(f"{key}[{i}]", entry, held) for i, entry in enumerate(value)]
+    if not entries:
+        raise SceneError(f"{path}: train_videos: missing or empty (no cameras)")
+    return entries
+
+
+@register_scene("scalarflow")
+@register_scene("pinf")
+def load_pinf(cfg) -> Scene:
+    """Load one frame of a PINF/HyFluid capture as a Scene (views in file order)."""
+    root = resolve_root(option(cfg, "root"))
+    info, path = _read_info(root)
+    folder = path.parent
+    frame = int(option(cfg, "frame", 0))
+    names, images, Ks, w2cs, sources, holdout = [], [], [], [], [], []
+    for where, entry, held in _camera_entries(info, path):
+        if not isinstance(entry, dict):
+            raise SceneError(f"{path}: {where}: must be an object")
+        file_name = entry.get("file_name")
+        if not isinstance(file_name, str) or not file_name:
+            raise SceneError(f"{path}: {where}.file_name: missing")
+        name = Path(file_name).stem
+        if name in names:
+            raise SceneError(f"{path}: {where}.file_name: camera '{name}' appears twice")
+        H, W = matrix(entry.get("camera_hw"), (2,), path, f"{where}.camera_hw")
+        if H < 1 or W < 1 or H != int(H) or W != int(W):
+            raise SceneError(f"{path}: {where}.camera_hw: must be two positive integers [H, W]")
+        angle = positive(entry.get("camera_angle_x"), path, f"{where}.camera_angle_x")
+        if angle >= math.pi:
+            raise SceneError(
+                f"{path}: {where}.camera_angle_x: {angle} rad is not a field of view below pi"
+            )
+        c2w = check_rigid(entry.get("transform_matrix"), path, f"{where}.transform_matrix")
+        frame_num = entry.get("frame_num")
+        if frame_num is not None and not 0 <= frame < int(frame_num):
+            raise SceneError(
+                f"{path}: {where}.frame_num: frame {frame} is outside its {frame_num} frames"
+            )
+        image, source = read_camera_frame(folder, file_name, frame)
+        check_image_size(image, H, W, source, path, f"{where}.camera_hw")
+        f = 0.5 * W / math.tan(0.5 * angle)
+        Ks.append(np.array([[f, 0.0, 0.5 * W + 0.5], [0.0, f, 0.5 * H + 0.5], [0.0, 0.0, 1.0]]))
+        w2cs.append(opengl_c2w_to_opencv_w2c(torch.from_numpy(c2w)).double().numpy())
+        names.append(name)
+        images.append(image)
+        sources.append(source)
+        if held:
+            holdout.append(name)
+    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
+    lo, hi, box_source = choose_box(cfg, pinf_box(info, path), cams, batch, path)
+    meta = {
+        "frame": frame,
+        "files": [str(s) for s in sources],
+        "bbox_source": str(box_source),
+        **{k: info[k] for k in ("near", "far") if k in info},
+    }
+    return Scene(
+        name=str(option(cfg, "name", "scalarflow")),
+        views=names,
+        cameras=cams,
+        images=batch,
+        bbox_min=lo,
+        bbox_max=hi,
+        default_holdout=holdout,
+        source=str(path),
+        meta=meta,
+    )

@@ -1,0 +1,67 @@
+"""Linearizing recorded values and fitting a per-camera gain and offset."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from flamerecon.photometry import (
+    apply_gain_offset,
+    fit_gain_offset,
+    fit_gain_offset_rows,
+    linearize,
+    normalize_gains,
+    remove_gain_offset,
+    srgb_to_linear,
+)
+
+
+def test_linearize_black_level_and_gamma():
+    v = torch.tensor([0.0, 0.1, 0.2, 0.6, 1.0]).reshape(1, 1, 1, 5)
+    out = linearize(v, gamma=2.0, black_level=0.2)
+    expected = torch.tensor([0.0, 0.0, 0.0, 0.5**2, 1.0]).reshape(1, 1, 1, 5)
+    torch.testing.assert_close(out, expected)
+    assert linearize(v) is v  # identity by default
+    torch.testing.assert_close(linearize(v, gamma="srgb"), srgb_to_linear(v))
+    assert float(srgb_to_linear(torch.tensor(0.5))) == pytest.approx(0.21404, abs=1e-4)
+
+
+@pytest.mark.parametrize("gamma, black", [(0.0, 0.0), ("log", 0.0), (1.0, 1.0)])
+def test_linearize_rejects_bad_settings(gamma, black):
+    with pytest.raises(ValueError, match="scene"):
+        linearize(torch.zeros(1, 1, 2, 2), gamma=gamma, black_level=black)
+
+
+def test_gain_offset_fit_recovers_each_camera():
+    g = torch.Generator().manual_seed(1)
+    rendered = torch.rand(3, 1, 8, 10, generator=g)
+    gain, offset = torch.tensor([0.8, 1.0, 1.25]), torch.tensor([0.02, 0.0, -0.01])
+    captured = apply_gain_offset(rendered, gain, offset)
+    mask = torch.ones(3, 8, 10, dtype=torch.bool)
+    mask[:, :2] = False
+    captured[:, :, :2] = 5.0  # outliers outside the mask must not count
+    fit_g, fit_o = fit_gain_offset(rendered, captured, mask)
+    torch.testing.assert_close(fit_g, gain, atol=1e-5, rtol=0)
+    torch.testing.assert_close(fit_o, offset, atol=1e-5, rtol=0)
+    fit_g, fit_o = fit_gain_offset(
+        rendered[:, :, 2:], captured[:, :, 2:] - offset.reshape(3, 1, 1, 1), fit_offset=False
+    )
+    torch.testing.assert_close(fit_g, gain, atol=1e-5, rtol=0)
+    assert bool((fit_o == 0).all())
+    torch.testing.assert_close(
+        remove_gain_offset(captured, gain, offset)[:, :, 2:], rendered[:, :, 2:]
+    )
+
+
+def test_gain_offset_fit_on_stacked_rows():
+    g = torch.Generator().manual_seed(2)
+    view = torch.tensor([0] * 50 + [2] * 40)  # camera 1 has no rows
+    predicted = torch.rand(90, 1, generator=g)
+    gain, offset = torch.tensor([0.9, 1.0, 1.2]), torch.tensor([0.01, 0.0, -0.02])
+    captured = predicted * gain[view, None] + offset[view, None]
+    fit_g, fit_o = fit_gain_offset_rows(predicted, captured, view, 3)
+    torch.testing.assert_close(fit_g, gain, atol=1e-5, rtol=0)
+    torch.testing.assert_close(fit_o, offset, atol=1e-5, rtol=0)
+    normalized = normalize_gains(torch.tensor([0.5, 2.0, 1.0]))
+    torch.testing.assert_close(normalized, torch.tensor([0.5, 2.0, 1.0]))
+    torch.testing.assert_close(normalize_gains(torch.tensor([2.0, 8.0])), torch.tensor([0.5, 2.0]))
