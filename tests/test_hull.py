@@ -121,11 +121,6 @@ def test_the_flame_hull_keeps_its_emission_and_carves_most_of_the_box(flame_hull
     assert hull.float().mean() < 0.5  # the hull is informative: most of the box is carved
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "silhouettes' opening (open_px=1) also erases the 1-2 px wide tip of a faint tongue at "
-    "64x48, which then carves one support voxel (k,j,i)=(6,19,8), 1.6% of the max density, "
-    "0.015% of the emission. Fix: drop small connected components instead of opening "
-    "(cv2.connectedComponentsWithStats, area < (2*open_px+1)^2); that keeps this voxel."))
 def test_the_flame_hull_contains_the_phantom_support(flame_hull):
     hull, truth = flame_hull
     support = truth > 0.01 * truth.max()

@@ -260,7 +260,7 @@ def box_from_value(value, file, field: str):
 def silhouette_options(cfg) -> dict:
     """Keyword arguments for :func:`~flamerecon.silhouettes.silhouettes` from the config."""
     node = option(cfg, "silhouette", {}) or {}
-    keys = ("method", "threshold", "dilate_px", "blur_px", "open_px", "close_px")
+    keys = ("method", "threshold", "dilate_px", "blur_px", "speck_px", "close_px")
     return {k: node[k] for k in keys if k in node and node[k] is not None}
 
 
