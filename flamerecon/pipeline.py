@@ -170,6 +170,10 @@ def fit_photometry(cfg: DictConfig, setup: Setup, problem: Problem, solver: Solv
             predicted = setup.operator.forward(result.x)
         gain, offset = fit_gain_offset_rows(predicted, setup.pixels, setup.row_view, T,
                                             bool(opts.get("fit_offset", True)))
+        if not bool((gain > 0).all()):
+            bad = [setup.scene.views[setup.train[k]] for k in (gain <= 0).nonzero().flatten().tolist()]
+            raise ConfigError(f"photometry.fit_gain: cameras {bad} got a gain <= 0 (their images do not "
+                              "follow the density's line integrals); run with photometry.fit_gain=false")
         gain = normalize_gains(gain)
         b = (setup.pixels - offset[setup.row_view, None]) / gain[setup.row_view, None]
         again = Problem(setup.operator, b, problem.l1, grid_shape=problem.grid_shape,
@@ -186,10 +190,7 @@ def solve(cfg: DictConfig, setup: Setup, x0: torch.Tensor | None = None
     """Solve ``setup`` as ``cfg`` says, without a run folder (no callback, checkpoints or
     logging): (result, absolute l1 weight, fitted photometry or None)."""
     problem, solver, l1 = make_problem(cfg, setup)
-    try:
-        result = solver.solve(problem, x0=x0)
-    except ValueError as err:
-        raise ConfigError(str(err)) from err
+    result = solver.solve(problem, x0=x0)
     result, photometry = fit_photometry(cfg, setup, problem, solver, result)
     return result, l1, photometry
 
