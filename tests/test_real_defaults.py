@@ -19,8 +19,8 @@ def test_scalarflow_picks_its_cross_validated_solver_grid_and_resolution():
     cfg = composed("scene=scalarflow")
     assert cfg.scene.name == "scalarflow" and cfg.scene.downscale == 4
     assert cfg.solver.name == "fista_smooth"
-    assert (cfg.solver.smooth, cfg.solver.l1_rel, cfg.solver.l1) == (0.1, 0.01, None)
-    assert cfg.grid.resolution == 128
+    assert (cfg.solver.smooth, cfg.solver.l1_rel, cfg.solver.l1) == (0.3, 0.05, None)
+    assert cfg.grid.resolution == 96
     make_solver(cfg.solver.name, **solver_options(cfg))  # a complete, valid solver config
 
 
