@@ -2,7 +2,9 @@
 others, and score every held-out view (the scene is loaded once; each split is prepared anew).
 
 ``exclude`` drops views from every fit without scoring them, so that settings can be chosen
-by cross-validation over the training views without ever looking at a test view.
+by cross-validation over the training views without ever looking at a test view. (``init=``
+warm-starts every fold from the same finished run, which may have seen the held-out view: leave
+it unset when the numbers are to be honest held-out scores.)
 """
 
 from __future__ import annotations
