@@ -154,3 +154,11 @@ def test_lambda_at_l1_rel_one_gives_zero_solution():
     problem.l1 = resolve_l1(problem, l1_rel=1.0 + 1e-4)
     res = make_solver("fista", tol=1e-6).solve(problem)
     assert float(res.x.abs().max()) == 0.0
+
+
+def test_lbfgsb_reaches_sklearn_objective(lasso_case):
+    A, b, lam, ref = lasso_case
+    res = make_solver("lbfgsb", tol=1e-6, max_iters=2000, check_every=5).solve(
+        Problem(csr(A), torch.tensor(b), lam))
+    assert (res.x >= 0).all()
+    assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-4 * ref
