@@ -3,6 +3,8 @@ O'Donoghue & Candes 2015 for the gradient restart)."""
 
 from __future__ import annotations
 
+import time
+
 import torch
 
 from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
@@ -13,12 +15,13 @@ class Fista(Solver):
     """Accelerated proximal gradient; step 1/L with L = ||A||^2 from power iteration.
 
     Stops when the relative duality gap (checked every ``check_every`` iterations) is below
-    ``tol`` or after ``max_iters``.
+    ``tol``, after ``max_iters``, or at the first check past ``max_seconds`` (if set).
     """
 
     def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
-                 restart: bool = True, **_: object) -> None:
+                 restart: bool = True, max_seconds: float | None = None, **_: object) -> None:
         self.max_iters = int(max_iters)
+        self.max_seconds = None if max_seconds is None else float(max_seconds)
         self.tol = float(tol)
         self.check_every = max(1, int(check_every))
         self.restart = bool(restart)
@@ -30,6 +33,7 @@ class Fista(Solver):
                 lipschitz: float | None = None) -> SolveResult:
         """FISTA from ``x`` (M, C); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
         A, b, lam = problem.A, problem.b, problem.l1
+        start = time.perf_counter()
         L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
         step = 1.0 / max(L, 1e-30)
         y, t = x.clone(), 1.0
@@ -58,5 +62,7 @@ class Fista(Solver):
                 history.append({"iteration": it, **info})
                 if info["rel_gap"] < self.tol:
                     converged = True
+                    break
+                if self.max_seconds is not None and time.perf_counter() - start > self.max_seconds:
                     break
         return SolveResult(x, it, 0.0, problem.objective(x), converged, history)

@@ -6,23 +6,27 @@ stays wherever it lives (CPU or GPU)."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 
 from .base import Callback, Problem, Solver, SolveResult, duality_gap, register
 
 
-class _Converged(Exception):
-    """Raised from scipy's callback to stop at the duality-gap tolerance."""
+class _Stop(Exception):
+    """Raised from scipy's callback to stop at the tolerance or the time budget."""
 
 
 @register("lbfgsb")
 class Lbfgsb(Solver):
     """Stops when the relative duality gap (checked every ``check_every`` iterations) is below
-    ``tol``, or after ``max_iters`` iterations; ``memory`` is the number of stored pairs."""
+    ``tol``, after ``max_iters`` iterations or at the first check past ``max_seconds`` (if
+    set); ``memory`` is the number of stored pairs."""
 
     def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
-                 memory: int = 10, **_: object) -> None:
+                 memory: int = 10, max_seconds: float | None = None, **_: object) -> None:
+        self.max_seconds = None if max_seconds is None else float(max_seconds)
         self.max_iters = int(max_iters)
         self.tol = float(tol)
         self.check_every = max(1, int(check_every))
@@ -34,6 +38,7 @@ class Lbfgsb(Solver):
         A, b, lam = problem.A, problem.b, problem.l1
         shape, dtype, device = x.shape, b.dtype, b.device
         last: dict[str, torch.Tensor] = {}
+        start = time.perf_counter()
 
         def to_torch(z: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(z).to(device=device, dtype=dtype).view(shape)
@@ -69,7 +74,9 @@ class Lbfgsb(Solver):
             history.append({"iteration": it, **info})
             if info["rel_gap"] < self.tol:
                 state["converged"] = True
-                raise _Converged
+                raise _Stop
+            if self.max_seconds is not None and time.perf_counter() - start > self.max_seconds:
+                raise _Stop
 
         z0 = x.double().cpu().numpy().ravel()
         best = {"z": z0}
@@ -84,7 +91,7 @@ class Lbfgsb(Solver):
                            options={"maxiter": self.max_iters, "maxcor": self.memory,
                                     "ftol": 0.0, "gtol": 0.0})
             best["z"] = res.x
-        except _Converged:
+        except _Stop:
             pass
         x = to_torch(best["z"]).clamp_min(0)
         return SolveResult(x, state["it"], 0.0, problem.objective(x), state["converged"], history)
