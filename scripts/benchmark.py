@@ -292,7 +292,7 @@ def main() -> None:
     parser.add_argument("--grid", type=int, nargs="+", default=[64], help="grid sizes N (N^3)")
     parser.add_argument("--l1-rel", type=float, default=1e-3, help="lambda / max(A^T P)")
     parser.add_argument("--budget", type=float, default=60.0, help="seconds per method")
-    parser.add_argument("--solvers", nargs="+", default=["fista", "lbfgsb"])
+    parser.add_argument("--solvers", nargs="+", default=["fista"], help="ours, e.g. fista lbfgsb")
     parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--out", default="benchmark.json")

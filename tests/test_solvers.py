@@ -65,15 +65,6 @@ def test_adam_reaches_sklearn_objective(lasso_case):
     assert res.objective == pytest.approx(objective(A, b, lam, res.x.numpy()), rel=1e-5)
 
 
-def test_csr_forward_is_differentiable_with_adjoint_backward():
-    A, b, _ = tiny_problem(seed=1, C=3)
-    op = csr(A)
-    x = torch.rand(A.shape[1], 3, dtype=torch.float32, requires_grad=True)
-    y = torch.tensor(b)
-    (op.forward(x) * y).sum().backward()  # d/dx <A x, y> = A^T y
-    torch.testing.assert_close(x.grad, torch.tensor(A.T @ b), rtol=1e-5, atol=1e-5)
-
-
 def test_lars_matches_sklearn_at_the_same_lambda(lasso_case):
     A, b, lam, ref = lasso_case
     res = make_solver("lars").solve(Problem(csr(A), torch.tensor(b), lam))
