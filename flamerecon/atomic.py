@@ -21,6 +21,11 @@ from typing import Any
 
 import numpy as np
 
+# Permissions of a newly created file under this process's umask (read once: os.umask can only
+# be read by setting it).
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+_FILE_MODE = 0o666 & ~_UMASK
 _TEMP_MARK = ".tmp"
 # ".<destination name>.<8 random characters from mkstemp>.tmp<destination suffix>"
 _TEMP_NAME = re.compile(r"^\.(?P<dest>.+)\.[a-z0-9_]{8}\.tmp(?P<suffix>\.[^.]+)?$")
@@ -67,6 +72,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
             raise FileNotFoundError(f"writer produced no file at {tmp} for {dest}")
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
+        os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600; give the usual permissions of a new file
         os.replace(tmp, dest)
         _fsync_dir(folder)
     except BaseException:

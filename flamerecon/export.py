@@ -25,6 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from flamerecon.atomic import atomic_path, save_npz_atomic, write_json_atomic
+from flamerecon.errors import FlameReconError
 
 DENSITY_FILE = "density.npz"
 FORMATS = ("vti", "nrrd", "raw")
@@ -32,7 +33,7 @@ _RESERVED = ("density", "bbox_min", "bbox_max", "views")
 _INSTALL_HINT = "install the optional exporters with: pip install 'flamerecon[export]'"
 
 
-class DensityFileError(ValueError):
+class DensityFileError(FlameReconError, ValueError):
     """A density file that is missing a field or holds a field of the wrong shape or type."""
 
 

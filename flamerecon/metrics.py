@@ -33,8 +33,23 @@ def volume_errors(density: torch.Tensor, truth: torch.Tensor, support: float = 0
     return {"rel_l2": rel, "iou": iou}
 
 
+def _cell_average_matrix(n_out: int, n_in: int) -> torch.Tensor:
+    """(n_out, n_in) weights averaging n_in equal cells of [0, 1] into n_out equal cells:
+    the length of each overlap divided by the output cell's length."""
+    edges_in = torch.linspace(0, 1, n_in + 1, dtype=torch.float64)
+    edges_out = torch.linspace(0, 1, n_out + 1, dtype=torch.float64)
+    lo = torch.maximum(edges_out[:-1, None], edges_in[None, :-1])
+    hi = torch.minimum(edges_out[1:, None], edges_in[None, 1:])
+    return (hi - lo).clamp_min(0) * n_out
+
+
 def resample_to(volume: torch.Tensor, shape: tuple[int, int, int]) -> torch.Tensor:
-    """Cell averages of volume (C, nz, ny, nx) on a coarser grid of the same box, (C, *shape)."""
+    """Exact cell averages of volume (C, nz, ny, nx) on another grid of the same box, (C, *shape)."""
     if tuple(volume.shape[1:]) == tuple(shape):
         return volume
-    return torch.nn.functional.interpolate(volume[None], size=shape, mode="area")[0]
+    nz, ny, nx = volume.shape[1:]
+    Wz, Wy, Wx = (_cell_average_matrix(o, i).to(volume.device) for o, i in zip(shape, (nz, ny, nx)))
+    out = torch.einsum("cijk,dk->cijd", volume.double(), Wx)
+    out = torch.einsum("cijd,bj->cibd", out, Wy)
+    out = torch.einsum("cibd,ai->cabd", out, Wz)
+    return out.to(volume.dtype)

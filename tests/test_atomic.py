@@ -97,6 +97,13 @@ def test_exception_inside_atomic_path_removes_temporary(tmp_path):
     assert list(tmp_path.iterdir()) == [dest]
 
 
+def test_written_file_has_usual_permissions(tmp_path):
+    umask = os.umask(0o022)
+    os.umask(umask)
+    path = atomic_write_bytes(tmp_path / "a.bin", b"x")
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
 def test_temporary_keeps_suffix_and_folder(tmp_path):
     dest = tmp_path / "vol.vti"
     with atomic_path(dest) as tmp:

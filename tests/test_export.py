@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
+from importlib.util import find_spec
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,8 @@ from flamerecon.export import (
 from flamerecon.grid import VoxelGrid
 
 REPO = Path(__file__).resolve().parents[1]
+needs_vtk = pytest.mark.skipif(find_spec("vtkmodules") is None,
+                               reason="vtk not installed: pip install 'flamerecon[export]'")
 LO = np.array([-0.5, 0.0, 1.0])
 HI = np.array([0.5, 3.0, 2.0])
 
@@ -121,6 +124,7 @@ def test_missing_and_foreign_files(tmp_path):
 # --- VTK ---------------------------------------------------------------------------------------
 
 
+@needs_vtk
 @pytest.mark.parametrize(("num_channels", "names"), [(1, ["density"]), (3, ["R", "G", "B"])])
 def test_vti_read_back_with_vtk(tmp_path, num_channels, names):
     vol = _volume(num_channels)
@@ -141,6 +145,7 @@ def test_vti_read_back_with_vtk(tmp_path, num_channels, names):
     assert arrays[names[-1]][point] == vol[-1, k, j, i]
 
 
+@needs_vtk
 def test_pvd_lists_series_with_relative_paths(tmp_path):
     (tmp_path / "frames").mkdir()
     for t in range(3):
@@ -207,8 +212,8 @@ def test_raw_read_back_with_numpy_fromfile(tmp_path):
 # --- a run's exports through the script --------------------------------------------------------
 
 
+@needs_vtk
 def test_export_script_writes_all_formats_into_run_dir(tmp_path):
-    pytest.importorskip("vtkmodules")
     pytest.importorskip("nrrd")
     vol = _volume(3)
     save_density(tmp_path / "density.npz", vol, LO, HI, ["a", "b"])

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
+from importlib.util import find_spec
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,8 @@ from flamerecon.export import save_density
 from flamerecon.sequence import SweepError, assemble_sweep, find_frame_runs, flatten_metrics
 
 REPO = Path(__file__).resolve().parents[1]
+needs_vtk = pytest.mark.skipif(find_spec("vtkmodules") is None,
+                               reason="vtk not installed: pip install 'flamerecon[export]'")
 LO = np.array([-1.0, 0.0, -1.0])
 HI = np.array([1.0, 4.0, 1.0])
 SHAPE = (3, 6, 5, 4)  # (C, nz, ny, nx)
@@ -50,6 +53,7 @@ def _metrics(frame: int) -> dict:
             "ssim": 0.9}}, "train": {"psnr": 35.0}}
 
 
+@needs_vtk
 def test_assemble_script_on_three_frames(tmp_path):
     sweep = tmp_path / "multirun"
     for job, frame in enumerate([20, 0, 10]):  # jobs finish in any order; frames get sorted
@@ -139,3 +143,62 @@ def test_unnumbered_sweep_uses_job_order(tmp_path):
 def test_flatten_metrics():
     assert flatten_metrics({"a": {"b": 1, "c": [2.0, "x"]}, "d": None}) == {
         "a.b": 1, "a.c.0": 2.0, "a.c.1": "x", "d": None}
+
+
+_APP = """
+import hydra
+import numpy as np
+from omegaconf import DictConfig
+
+from flamerecon.export import save_density
+
+
+@hydra.main(version_base=None, config_path=None, config_name=None)
+def main(cfg: DictConfig) -> None:
+    frame = int(cfg.scene.frame)
+    rng = np.random.default_rng(frame)
+    save_density("density.npz", rng.random((3, 6, 5, 4)).astype(np.float32),
+                 [-1.0, 0.0, -1.0], [1.0, 4.0, 1.0], ["c0"])
+    with open("metrics.json", "w") as fh:
+        fh.write('{"psnr": %d}' % (30 + frame))
+
+
+if __name__ == "__main__":
+    main()
+"""
+
+
+@needs_vtk
+def test_joblib_multirun_then_assemble(tmp_path):
+    """The sequence workflow end to end with Hydra's joblib launcher and a stand-in app."""
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    (tmp_path / "app.py").write_text(_APP)
+    sweep = tmp_path / "sweep"
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run(
+        [sys.executable, "app.py", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+         "+scene.frame=range(0,30,10)", f"hydra.sweep.dir={sweep}", "hydra.job.chdir=true"],
+        cwd=tmp_path, check=False, capture_output=True, text=True, env=env, timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    written = assemble_sweep(sweep)
+    with np.load(written["npz"]) as f:
+        np.testing.assert_array_equal(f["frames"], [0, 10, 20])
+        assert f["density"].shape == (3, 3, 6, 5, 4)
+        np.testing.assert_array_equal(
+            f["density"][2], np.random.default_rng(20).random((3, 6, 5, 4)).astype(np.float32))
+    sets = ET.parse(written["pvd"]).getroot().find("Collection").findall("DataSet")
+    assert len(sets) == 3
+
+
+def test_slurm_launcher_config_composes():
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        cfg = compose(config_name=None, overrides=["hydra/launcher=slurm",
+                                                   "hydra.launcher.partition=gpu"],
+                      return_hydra_config=True)
+    launcher = cfg.hydra.launcher
+    assert launcher._target_.endswith("SlurmLauncher")
+    assert launcher.partition == "gpu" and launcher.array_parallelism == 64

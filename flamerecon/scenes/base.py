@@ -7,10 +7,11 @@ from dataclasses import dataclass, field
 import torch
 from kornia.geometry.camera import PinholeCamera
 
+from ..errors import FlameReconError
 from ..grid import VoxelGrid
 
 
-class SceneError(ValueError):
+class SceneError(FlameReconError, ValueError):
     """Bad scene input; the message names the file and the field."""
 
 

@@ -38,12 +38,18 @@ class Adam(Solver):
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
         A, b, lam = problem.A, problem.b, problem.l1
-        lr0 = self.lr * float(density_scale(A, b).max())
+        resume = self._take_resume()
+        lr0 = self.lr * float(density_scale(A, b).max()) if resume is None else resume["lr0"]
         param = x.clone().requires_grad_(True)
         opt = torch.optim.Adam([param], lr=lr0)
         history: list[dict] = []
         converged, it, halvings, stalled, best = False, 0, 0, 0, math.inf
-        for it in range(1, self.max_iters + 1):
+        start = 1
+        if resume is not None:  # redo iteration resume["iteration"] from the state before its step
+            opt.load_state_dict(resume["optimizer"])
+            halvings, stalled, best = resume["halvings"], resume["stalled"], resume["best"]
+            history, start = list(resume["history"]), resume["iteration"]
+        for it in range(start, self.max_iters + 1):
             opt.zero_grad(set_to_none=True)
             r = A.forward(param) - b
             loss = 0.5 * (r * r).sum() + lam * param.sum()
@@ -59,6 +65,12 @@ class Adam(Solver):
                     "rel_gap": gap / max(primal, 1e-30),
                     "lr": opt.param_groups[0]["lr"],
                 }
+                if callback is not None:
+                    self._state = {
+                        "iteration": it, "x": xd, "optimizer": opt.state_dict(), "lr0": lr0,
+                        "halvings": halvings, "stalled": stalled, "best": best,
+                        "history": list(history),
+                    }
                 history.append({"iteration": it, **info})
                 if callback is not None:
                     callback(it, xd, info)

@@ -67,10 +67,14 @@ def duality_gap(
     b = problem.b.double()
     primal = 0.5 * (r**2).sum(0) + problem.l1 * x.double().sum(0)
     worst = (-grad.double()).amax(0)  # max_j (A^T u)_j for u = -r
-    if problem.l1 > 0:
-        scale = torch.where(worst > problem.l1, problem.l1 / worst.clamp_min(1e-300), torch.ones_like(worst))
-    else:
-        scale = torch.where(worst > 0, torch.zeros_like(worst), torch.ones_like(worst))
+    if problem.l1 == 0:
+        # nonnegative least squares: the dual point -r is feasible only once A^T r >= 0, and
+        # scaling cannot make it so; use the KKT residual x.g + ||x||_1 max(0, -min g)
+        # instead, which equals the duality gap whenever -r is feasible and vanishes at x*
+        g = grad.double()
+        kkt = (x.double() * g).sum(0).clamp_min(0) + x.double().sum(0) * worst.clamp_min(0)
+        return float(primal.sum()), float(kkt.sum())
+    scale = torch.where(worst > problem.l1, problem.l1 / worst.clamp_min(1e-300), torch.ones_like(worst))
     u = -r * scale
     dual = (b * u).sum(0) - 0.5 * (u**2).sum(0)
     return float(primal.sum()), float((primal - dual).clamp_min(0).sum())
@@ -113,6 +117,25 @@ class Solver:
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
         raise NotImplementedError
+
+    # Optional exact resume (checkpoints): a solver that supports it sets ``self._state`` to the
+    # dict it needs to go on just before each callback, and reads ``self._resume`` in ``_run``.
+    _state: dict | None = None
+    _resume: dict | None = None
+
+    def state(self) -> dict | None:
+        """At a callback: what the solver needs to continue exactly from there (tensors, numbers,
+        lists; ``torch.save``-able), or None where it only supports a warm start from ``x``."""
+        return self._state
+
+    def load_state(self, state: dict) -> None:
+        """Make the next :meth:`solve` continue from ``state`` (from :meth:`state`), so that it
+        ends where an uninterrupted solve would; pass the same problem and ``x0 = state['x']``."""
+        self._resume = state
+
+    def _take_resume(self) -> dict | None:
+        state, self._resume = self._resume, None
+        return state
 
 
 SOLVERS: dict[str, type[Solver]] = {}

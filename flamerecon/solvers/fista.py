@@ -33,13 +33,18 @@ class Fista(Solver):
                 lipschitz: float | None = None) -> SolveResult:
         """FISTA from ``x`` (M, C); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
         A, b, lam = problem.A, problem.b, problem.l1
-        start = time.perf_counter()
-        L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
+        t_start = time.perf_counter()
+        resume = self._take_resume()
+        if resume is None:
+            L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(
+                A, A.shape[1], b.device, b.dtype)
+            y, t, start, history = x.clone(), 1.0, 1, []
+        else:  # continue exactly where state() was taken (x is resume["x"])
+            L, t, start = resume["L"], resume["t"], resume["iteration"] + 1
+            y, history = resume["y"].to(x), list(resume["history"])
         step = 1.0 / max(L, 1e-30)
-        y, t = x.clone(), 1.0
-        history: list[dict] = []
-        converged, it = False, 0
-        for it in range(1, self.max_iters + 1):
+        converged, it = False, start - 1
+        for it in range(start, self.max_iters + 1):
             grad_y = A.adjoint(A.forward(y) - b)
             x_new = (y - step * (grad_y + lam)).clamp_min_(0)
             if self.restart and float(((y - x_new) * (x_new - x)).sum()) > 0:
@@ -57,12 +62,15 @@ class Fista(Solver):
                     "gap": gap,
                     "rel_gap": gap / max(primal, 1e-30),
                 }
+                entry = {"iteration": it, **info}
+                history.append(entry)
                 if callback is not None:
-                    callback(it, x, info)  # may add entries (fista_smooth splits the data term)
-                history.append({"iteration": it, **info})
+                    self._state = {"iteration": it, "x": x, "y": y, "t": t, "L": L, "history": history}
+                    callback(it, x, info)
+                    entry.update(info)  # a callback may add entries (fista_smooth splits the data)
                 if info["rel_gap"] < self.tol:
                     converged = True
                     break
-                if self.max_seconds is not None and time.perf_counter() - start > self.max_seconds:
+                if self.max_seconds is not None and time.perf_counter() - t_start > self.max_seconds:
                     break
         return SolveResult(x, it, 0.0, problem.objective(x), converged, history)

@@ -1,0 +1,427 @@
+"""reconstruct(cfg): scene -> silhouettes -> visual hull -> operator -> solve -> outputs;
+evaluate(run_dir): re-render a finished run's views and score them."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from .atomic import atomic_write_bytes, write_json_atomic
+from .cameras import K_of, camera_subset, cameras_to
+from .checkpoint import CHECKPOINT_FILE, load_checkpoint
+from .checks import (
+    check_grid_memory,
+    check_scene,
+    check_silhouettes,
+    choose_backend,
+    explain_empty_hull,
+    memory_budget,
+)
+from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
+from .export import export_run, load_density, save_density
+from .figures import top_view
+from .grid import VoxelGrid
+from .guard import SolveGuard, StopSolve, stop_signals
+from .hull import visual_hull
+from .metrics import psnr, resample_to, ssim, volume_errors
+from .projector import camera_rays, make_operator, render_image
+from .scenes import Scene, load_scene
+from .silhouettes import silhouettes
+from .solvers import SOLVERS, Problem, SolveResult, make_solver, resolve_l1
+from .tb_logging import RunWriter, side_by_side
+
+log = logging.getLogger(__name__)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when present, else CPU; ``cpu``/``cuda`` as asked."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device: 'cuda' was asked for but torch sees no CUDA device; use device=auto or cpu")
+    return torch.device(name)
+
+
+@dataclass
+class Setup:
+    """Everything the solve needs, built once from the scene and the config."""
+
+    scene: Scene
+    train: list[int]
+    holdout: list[int]
+    grid: VoxelGrid
+    masks: torch.Tensor  # (B, H, W) bool, every view
+    hull: torch.Tensor  # (nz, ny, nx) bool
+    voxel_index: torch.Tensor  # (M,) flat indices of hull voxels
+    operator: object  # LinearOperator (N, M)
+    pixels: torch.Tensor  # (N, C) training pixel values inside the silhouettes
+    step: float
+
+    def volume(self, x: torch.Tensor) -> torch.Tensor:
+        """Hull values (M, C) -> dense density (C, nz, ny, nx)."""
+        C = x.shape[1]
+        vol = x.new_zeros(C, self.grid.num_voxels)
+        vol[:, self.voxel_index] = x.T
+        return vol.reshape(C, *self.grid.shape)
+
+
+def scene_grid(cfg: DictConfig, scene: Scene) -> VoxelGrid:
+    """The reconstruction grid: ``grid.bbox`` if set, else the scene's box."""
+    bbox = cfg.grid.get("bbox")
+    lo, hi = (bbox[0], bbox[1]) if bbox is not None else (scene.bbox_min, scene.bbox_max)
+    res = cfg.grid.resolution
+    res = int(res) if isinstance(res, (int, float)) else list(res)
+    try:
+        return VoxelGrid.from_box(lo, hi, res)
+    except ValueError as err:
+        raise ConfigError(f"grid: {err}") from err
+
+
+def prepare(cfg: DictConfig, scene: Scene, device: torch.device) -> Setup:
+    """Split, silhouettes, visual hull, rays and the operator restricted to them."""
+    train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
+    grid = scene_grid(cfg, scene)
+    check_scene(scene, grid)
+    budget = memory_budget(device, cfg.projector.get("max_memory_gb"))
+    check_grid_memory(grid, scene.num_views, device, budget)
+    images = scene.images.to(device)
+    masks = scene.masks.to(device) if scene.masks is not None else silhouettes(images, **cfg.silhouette)
+    threshold = float(cfg.silhouette.get("threshold", 0.0))
+    check_silhouettes(scene, masks, train, threshold)
+    cams = cameras_to(camera_subset(scene.cameras, train), device)
+    margin = int(cfg.hull.margin_voxels)
+    hull = visual_hull(grid, cams, masks[train], margin)
+    if not bool(hull.any()):
+        raise explain_empty_hull(scene, grid, cams, masks[train], train, threshold, margin)
+    voxel_index = hull.reshape(-1).nonzero().squeeze(1)
+    rays, flat = camera_rays(cams, masks[train])
+    C = images.shape[1]
+    pixels = images[train].permute(0, 2, 3, 1).reshape(-1, C)[flat].contiguous()
+    step = float(cfg.projector.step)
+    backend = choose_backend(cfg.projector.backend, grid, rays, voxel_index, step, device, budget)
+    operator = make_operator(backend, grid, rays, voxel_index, step)
+    return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step)
+
+
+def initial_guess(path: str | Path, grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
+    """Hull values (M, C) from a finished run's density (warm start, e.g. from the previous
+    frame of a video), averaged onto ``grid`` when its resolution differs."""
+    saved = load_density(path)
+    if not (np.allclose(saved.bbox_min, grid.bbox_min) and np.allclose(saved.bbox_max, grid.bbox_max)):
+        raise ConfigError(
+            f"init: {path} covers the box {saved.bbox_min.tolist()}-{saved.bbox_max.tolist()}, "
+            f"this run's grid {list(grid.bbox_min)}-{list(grid.bbox_max)}; warm start needs the same box"
+        )
+    vol = resample_to(torch.from_numpy(saved.density), grid.shape).to(voxel_index.device)
+    return vol.reshape(vol.shape[0], -1)[:, voxel_index].T.contiguous()
+
+
+def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
+    """Rendered images (len(views), C, H, W) of the density for the given view indices."""
+    cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
+    return render_image(volume, grid, cams, step).cpu()
+
+
+def score_views(rendered: torch.Tensor, scene: Scene, views: list[int]) -> dict[str, dict[str, float]]:
+    """Per view: full-frame PSNR and SSIM against the captured image, and the PSNR of an
+    all-black prediction (the floor that gives a number its meaning)."""
+    out = {}
+    for img, v in zip(rendered, views):
+        captured = scene.images[v]
+        out[scene.views[v]] = {
+            "psnr": psnr(img, captured),
+            "ssim": ssim(img, captured),
+            "psnr_black": psnr(torch.zeros_like(captured), captured),
+        }
+    return out
+
+
+def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
+    """renders/<view>.png: rendered | captured | |error| x4, one per held-out view."""
+    folder = run_dir / "renders"
+    folder.mkdir(parents=True, exist_ok=True)
+    for img, v in zip(rendered, views):
+        panel = side_by_side(img, scene.images[v]).permute(1, 2, 0).numpy()
+        ok, png = cv2.imencode(".png", (panel[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        if not ok:
+            raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")
+        atomic_write_bytes(folder / f"{scene.views[v]}.png", png.tobytes())
+
+
+def cameras_record(scene: Scene, train: list[int]) -> list[dict]:
+    """cameras.json content: every camera with K, world_to_camera, size and its role."""
+    K = K_of(scene.cameras).cpu()
+    E = scene.cameras.extrinsics.cpu()
+    return [
+        {
+            "name": name,
+            "K": K[i].tolist(),
+            "world_to_camera": E[i].tolist(),
+            "width": int(scene.cameras.width[i]),
+            "height": int(scene.cameras.height[i]),
+            "split": "train" if i in train else "holdout",
+        }
+        for i, name in enumerate(scene.views)
+    ]
+
+
+def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
+          step: float) -> tuple[dict, torch.Tensor]:
+    """Metrics of a density (C, nz, ny, nx): held-out and training views, volume errors
+    against the truth when the scene has one. Returns (metrics, held-out renders)."""
+    held_imgs = render_views(volume, grid, scene, holdout, step)
+    train_imgs = render_views(volume, grid, scene, train, step)
+    metrics = {"heldout": score_views(held_imgs, scene, holdout), "train": score_views(train_imgs, scene, train)}
+    if scene.truth is not None:
+        truth = resample_to(scene.truth, grid.shape) if scene.truth_grid is not None and (
+            scene.truth_grid.bbox_min == grid.bbox_min and scene.truth_grid.bbox_max == grid.bbox_max
+        ) else None
+        if truth is not None:
+            metrics["volume"] = volume_errors(volume.cpu(), truth)
+    return metrics, held_imgs
+
+
+def mean_of(per_view: dict[str, dict[str, float]], key: str) -> float:
+    vals = [v[key] for v in per_view.values()]
+    return sum(vals) / len(vals) if vals else math.nan
+
+
+def summary_table(metrics: dict) -> str:
+    """The short table printed at the end of a run."""
+    s = metrics["solver"]
+    rows = [
+        ("held-out PSNR [dB]", (f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
+                               f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})")),
+        ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
+        ("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"),
+    ]
+    if "volume" in metrics:
+        rows.append(("volume rel. L2 / IoU", f"{metrics['volume']['rel_l2']:.4f} / {metrics['volume']['iou']:.4f}"))
+    rows += [
+        ("solver", f"{s['name']} (l1 = {s['l1']:.4g})"),
+        ("iterations", f"{s['iterations']}{'' if s['converged'] else ' (not converged)'}"),
+        ("seconds", f"{s['seconds']:.2f}"),
+    ]
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+class Monitor:
+    """Solver callback: progress bar, TensorBoard scalars, held-out PSNR and pictures."""
+
+    def __init__(self, setup: Setup, writer: RunWriter, cfg: DictConfig, total: int, device):
+        self.setup, self.writer, self.cfg = setup, writer, cfg
+        self.bar = tqdm(total=total, desc="solve", unit="it", leave=False, dynamic_ncols=True)
+        self.device = device
+        self.last = 0
+
+    def __call__(self, it: int, x: torch.Tensor, info: dict) -> None:
+        self.bar.update(it - self.last)
+        self.last = it
+        self.bar.set_postfix(objective=f"{info['objective']:.4g}", gap=f"{info.get('rel_gap', math.nan):.1e}")
+        values = {k: info[k] for k in ("objective", "data", "l1", "rel_gap") if k in info}
+        values["nonzero_fraction"] = float((x > 0).any(1).float().mean())
+        self.writer.scalars(it, values)
+        every = int(self.cfg.log.eval_every)
+        if every > 0 and it % every == 0:
+            self.pictures(it, x)
+
+    def pictures(self, it: int, x: torch.Tensor) -> None:
+        s = self.setup
+        vol = s.volume(x.detach())
+        imgs = render_views(vol, s.grid, s.scene, s.holdout, s.step)
+        scores = score_views(imgs, s.scene, s.holdout)
+        self.writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix="eval")
+        for img, v in zip(imgs, s.holdout):
+            self.writer.image(f"heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
+        self.writer.image("density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def solver_options(cfg: DictConfig) -> dict:
+    opts = OmegaConf.to_container(cfg.solver, resolve=True)
+    for k in ("name", "l1", "l1_rel"):
+        opts.pop(k, None)
+    return opts
+
+
+def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
+    """Run the whole pipeline for ``cfg`` and write the run folder; returns metrics.json's dict.
+
+    With ``resume`` the solve continues from ``run_dir/checkpoint.pt``. Raises
+    :class:`~flamerecon.errors.Interrupted` after checkpointing on SIGINT/SIGTERM, and
+    :class:`~flamerecon.errors.SolveDiverged` after writing the last good iterate's outputs.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(int(cfg.seed))
+    device = resolve_device(cfg.device)
+    if cfg.solver.name not in SOLVERS:
+        raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
+    ckpt = load_checkpoint(run_dir) if resume else None
+    scene = load_scene(cfg.scene)
+    setup = prepare(cfg, scene, device)
+    l1, l1_rel = cfg.solver.get("l1"), cfg.solver.get("l1_rel")
+    if l1 is not None:
+        l1_rel = None  # an absolute weight wins over the relative default
+    try:
+        l1 = resolve_l1(setup.operator, setup.pixels, l1, l1_rel)
+        solver = make_solver(cfg.solver.name, **solver_options(cfg))
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
+    problem = Problem(setup.operator, setup.pixels, l1)
+    meta = {"solver": cfg.solver.name, "shape": list(setup.operator.shape),
+            "channels": int(setup.pixels.shape[1]), "l1": l1}
+    x0, start, seconds_before = None, 0, 0.0
+    if ckpt is not None:
+        x0, start, seconds_before = resume_solver(run_dir, ckpt, solver, meta)
+    elif cfg.get("init"):
+        x0 = initial_guess(cfg.init, setup.grid, setup.voxel_index)
+    start_x = x0 if x0 is not None else setup.pixels.new_zeros(problem.A.shape[1], problem.b.shape[1])
+    start_objective = float(problem.objective(setup.pixels.new_zeros(start_x.shape)))
+    writer = RunWriter(str(run_dir))
+    monitor = Monitor(setup, writer, cfg, int(cfg.solver.get("max_iters", 0)), device)
+    monitor.last = start
+    ck = cfg.get("checkpoint") or {}
+    guard = SolveGuard(solver, monitor, run_dir, int(ck.get("every", 0)),
+                       float(ck.get("divergence_factor", 0.0)), start_objective, meta,
+                       (start, start_x), seconds_before)
+    stopped: StopSolve | None = None
+    try:
+        with stop_signals() as signals:
+            guard.signals = signals
+            try:
+                result = solver.solve(problem, x0=x0, callback=guard)
+                result.seconds = guard.seconds()
+            except StopSolve as stop:
+                if stop.reason == "interrupted":
+                    raise Interrupted(
+                        f"{run_dir}: {stop.detail} at iteration {stop.iteration}; the state is saved in "
+                        f"{CHECKPOINT_FILE}; continue with: python train.py resume={run_dir}"
+                    ) from None
+                stopped = stop
+                it, x = guard.last_good
+                log.error("solve %s; keeping the last good iterate (iteration %d)", stop, it)
+                result = SolveResult(x, it, guard.seconds(), problem.objective(x), False)
+        metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped)
+    finally:
+        monitor.close()
+        writer.close()
+    if stopped is not None:
+        raise SolveDiverged(
+            f"{run_dir}: the solve {stopped}; density.npz and metrics.json hold the last good "
+            f"iterate (iteration {result.iterations}); try a smaller step (solver.lr) or another solver"
+        )
+    (run_dir / CHECKPOINT_FILE).unlink(missing_ok=True)  # finished: nothing left to resume
+    formats = cfg.get("export", {}).get("formats", [])
+    if formats:
+        export_run(run_dir, list(formats))
+    return metrics
+
+
+def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.Tensor, int, float]:
+    """Load checkpoint ``ckpt`` of ``run_dir`` into ``solver``; returns (x0, iteration, seconds
+    so far). Refuses a checkpoint made for another problem (solver, operator shape, channels, l1)."""
+    saved = ckpt["meta"]
+    for key, now in meta.items():
+        if key in saved and saved[key] != now:
+            raise ResumeError(
+                f"{run_dir / CHECKPOINT_FILE}: field '{key}' is {saved[key]} but the run's config now "
+                f"gives {now}; the scene, grid or solver changed since the checkpoint"
+            )
+    state = ckpt["state"]
+    if ckpt.get("exact"):
+        solver.load_state(state)
+    else:
+        log.warning("%s: solver %s cannot restore its internal state; resuming from the saved "
+                    "iterate (a warm start, not bit-identical to an uninterrupted run)",
+                    run_dir / CHECKPOINT_FILE, meta["solver"])
+    log.info("resuming %s from iteration %d", run_dir, state["iteration"])
+    return state["x"], int(state["iteration"]), float(saved.get("seconds", 0.0))
+
+
+def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, writer: RunWriter,
+                  monitor: Monitor, result: SolveResult, l1: float, stopped: StopSolve | None) -> dict:
+    """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries."""
+    volume = setup.volume(result.x)
+    solver_info = {
+        "name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
+        "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
+        "status": "finished" if stopped is None else "diverged",
+    }
+    if stopped is not None:
+        solver_info["stopped"] = {"iteration": stopped.iteration, "reason": stopped.detail}
+    train_names = [scene.views[i] for i in setup.train]
+    save_density(
+        run_dir / "density.npz", volume.cpu(), setup.grid.bbox_min, setup.grid.bbox_max,
+        train_names, solver=json.dumps(solver_info), frame=int(cfg.scene.get("frame", 0)),
+    )
+    write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
+    metrics = finish(run_dir, scene, volume, setup.grid, setup.train, setup.holdout, setup.step, solver_info)
+    monitor.pictures(result.iterations, result.x)
+    writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
+                                                  setup.grid.bbox_max), 0, "HWC")
+    writer.hparams(
+        {"scene": cfg.scene.name, "solver": cfg.solver.name, "l1": l1,
+         "grid": str(setup.grid.resolution), "holdout": ",".join(scene.views[i] for i in setup.holdout)},
+        flat_metrics(metrics),
+    )
+    return metrics
+
+
+def flat_metrics(metrics: dict) -> dict[str, float]:
+    out = {
+        "heldout_psnr": mean_of(metrics["heldout"], "psnr"),
+        "heldout_ssim": mean_of(metrics["heldout"], "ssim"),
+        "train_psnr": mean_of(metrics["train"], "psnr"),
+        "seconds": metrics["solver"]["seconds"],
+    }
+    if "volume" in metrics:
+        out.update({f"volume_{k}": v for k, v in metrics["volume"].items()})
+    return out
+
+
+def finish(run_dir: Path, scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int],
+           holdout: list[int], step: float, solver_info: dict) -> dict:
+    """Score, write renders/ and metrics.json."""
+    metrics, held_imgs = score(scene, volume, grid, train, holdout, step)
+    metrics["solver"] = solver_info
+    write_renders(run_dir, held_imgs, scene, holdout)
+    write_json_atomic(run_dir / "metrics.json", metrics)
+    return metrics
+
+
+def run_config(run_dir: str | Path) -> DictConfig:
+    """The config a run folder was made with (``.hydra/config.yaml``)."""
+    cfg_path = Path(run_dir) / ".hydra" / "config.yaml"
+    if not cfg_path.is_file():
+        raise RunFolderError(f"{cfg_path}: not found; is {run_dir} a flamerecon run folder?")
+    return OmegaConf.load(cfg_path)
+
+
+def evaluate(run_dir: str | Path, device: str = "auto") -> dict:
+    """Re-render the views of a finished run from its saved ``density.npz`` and config,
+    write ``metrics.json`` and ``renders/``; returns the metrics."""
+    run_dir = Path(run_dir)
+    cfg = run_config(run_dir)
+    saved = load_density(run_dir / "density.npz")
+    scene = load_scene(cfg.scene)
+    train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
+    lo, hi = tuple(saved.bbox_min.tolist()), tuple(saved.bbox_max.tolist())
+    nz, ny, nx = saved.density.shape[1:]
+    grid = VoxelGrid(lo, hi, (nx, ny, nz))
+    volume = torch.from_numpy(saved.density).to(resolve_device(device))
+    with np.load(run_dir / "density.npz") as f:
+        solver_info = json.loads(str(f["solver"])) if "solver" in f.files else {}
+    return finish(run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step), solver_info)

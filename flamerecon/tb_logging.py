@@ -1,0 +1,41 @@
+"""TensorBoard helpers: what a run shows while it solves and when it ends."""
+
+from __future__ import annotations
+
+import torch
+from torch.utils.tensorboard import SummaryWriter
+
+
+def to_display(image: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) image for display: grey images become RGB, values clipped to [0, 1]."""
+    image = image.detach().float().cpu().clamp(0, 1)
+    return image.expand(3, -1, -1) if image.shape[0] == 1 else image[:3]
+
+
+def side_by_side(rendered: torch.Tensor, captured: torch.Tensor) -> torch.Tensor:
+    """rendered | captured | |error| (x4) as one (3, H, 3W) image."""
+    err = ((rendered.clamp(0, 1) - captured).abs() * 4).clamp(0, 1)
+    return torch.cat([to_display(rendered), to_display(captured), to_display(err)], dim=-1)
+
+
+class RunWriter:
+    """A SummaryWriter with the run's conventions (tags ``solve/*``, ``eval/*``, ``images/*``)."""
+
+    def __init__(self, log_dir: str):
+        self.writer = SummaryWriter(log_dir=log_dir)
+
+    def scalars(self, step: int, values: dict[str, float], prefix: str = "solve") -> None:
+        for k, v in values.items():
+            self.writer.add_scalar(f"{prefix}/{k}", v, step)
+
+    def image(self, tag: str, image, step: int, dataformats: str = "CHW") -> None:
+        """Log an image: float (C, H, W) in [0, 1], or uint8 (H, W, 3) with ``dataformats="HWC"``."""
+        self.writer.add_image(tag, image, step, dataformats=dataformats)
+
+    def hparams(self, params: dict, metrics: dict[str, float]) -> None:
+        clean = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in params.items()}
+        self.writer.add_hparams(clean, {f"hparam/{k}": v for k, v in metrics.items()}, run_name=".")
+
+    def close(self) -> None:
+        self.writer.flush()
+        self.writer.close()

@@ -1,0 +1,98 @@
+"""Image and volume quality measures against hand-computed values."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from flamerecon.metrics import psnr, resample_to, ssim, volume_errors
+
+
+def test_psnr_matches_a_hand_computed_value():
+    target = torch.tensor([[[0.1, 0.2], [0.3, 0.4]]])  # (1, 2, 2)
+    pred = torch.zeros_like(target)
+    mse = (0.01 + 0.04 + 0.09 + 0.16) / 4  # 0.075
+    assert psnr(pred, target) == pytest.approx(10 * math.log10(1 / mse), abs=1e-6)  # float32 inputs
+    assert psnr(pred, target) == pytest.approx(11.2494, abs=1e-4)
+    # max_val rescales: the same error on a 0..255 scale
+    assert psnr(pred * 255, target * 255, max_val=255.0) == pytest.approx(11.2494, abs=1e-4)
+
+
+def test_psnr_is_over_every_channel_and_pixel_and_clips_the_prediction():
+    target = torch.full((3, 4, 5), 0.5)
+    pred = target.clone()
+    pred[1, 2, 3] = 0.9  # one wrong value among 60
+    assert psnr(pred, target) == pytest.approx(10 * math.log10(60 / 0.16), abs=1e-6)
+    assert psnr(target, target) == math.inf
+    ones = torch.ones(3, 4, 5)
+    assert psnr(ones * 1.7, ones) == math.inf  # the prediction is clipped to [0, 1]
+
+
+def test_ssim_is_one_for_identical_images_and_drops_with_noise():
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(3, 32, 32, generator=g)
+    assert ssim(image, image) == pytest.approx(1.0, abs=1e-5)
+    a = ssim((image + 0.05 * torch.randn(3, 32, 32, generator=g)).clamp(0, 1), image)
+    b = ssim((image + 0.2 * torch.randn(3, 32, 32, generator=g)).clamp(0, 1), image)
+    assert 1.0 > a > b
+
+
+def blob(shape=(6, 8, 10), lo=(1, 2, 3), hi=(4, 5, 6)) -> torch.Tensor:
+    v = torch.zeros(3, *shape)
+    v[:, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = torch.tensor([1.0, 0.6, 0.3])[:, None, None, None]
+    return v
+
+
+def test_volume_errors_of_the_truth_itself_are_perfect():
+    truth = blob()
+    assert volume_errors(truth, truth) == {"rel_l2": 0.0, "iou": 1.0}
+
+
+def test_volume_errors_of_scaled_shifted_and_empty_densities():
+    truth = blob()
+    twice = volume_errors(2 * truth, truth)
+    assert twice["rel_l2"] == pytest.approx(1.0) and twice["iou"] == 1.0
+    # a 3x3x3 block shifted by one voxel along x: overlap 18, union 36
+    shifted = volume_errors(blob(lo=(1, 2, 4), hi=(4, 5, 7)), truth)
+    assert shifted["iou"] == pytest.approx(18 / 36)
+    assert shifted["rel_l2"] == pytest.approx(math.sqrt(2 * 9 / 27))
+    empty = volume_errors(torch.zeros_like(truth), truth)
+    assert empty == {"rel_l2": 1.0, "iou": 0.0}
+
+
+def test_resample_to_keeps_a_shape_it_already_has_and_preserves_the_mean():
+    g = torch.Generator().manual_seed(0)
+    volume = torch.rand(3, 8, 12, 8, generator=g)
+    assert resample_to(volume, (8, 12, 8)) is volume
+    half = resample_to(volume, (4, 6, 4))
+    assert half.shape == (3, 4, 6, 4)
+    assert torch.allclose(half.mean((1, 2, 3)), volume.mean((1, 2, 3)), atol=1e-6)
+    # each coarse cell is the average of the 2x2x2 fine cells it covers
+    assert half[1, 2, 3, 1].item() == pytest.approx(volume[1, 4:6, 6:8, 2:4].mean().item(), abs=1e-6)
+
+
+def ramp(n_in: int, n_out: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cell values of f(x) = x on [0, 1] at n_in cells resampled to n_out, and the exact
+    cell averages (the coarse cell centres)."""
+    x = (torch.arange(n_in, dtype=torch.float64) + 0.5) / n_in
+    coarse = resample_to(x.expand(1, 2, 2, n_in).clone(), (2, 2, n_out))[0, 0, 0]
+    return coarse, (torch.arange(n_out, dtype=torch.float64) + 0.5) / n_out
+
+
+def test_resample_to_gives_exact_cell_averages_for_integer_ratios():
+    coarse, exact = ramp(24, 8)
+    assert torch.allclose(coarse, exact, atol=1e-12)
+
+
+def test_resample_to_gives_exact_cell_averages_for_non_integer_ratios():
+    # reference: split both grids into their least common multiple of cells (21 * 11), where
+    # each fine cell is constant, and average blocks of 21 -> exact coarse cell averages
+    fine = torch.rand(21, dtype=torch.float64)
+    coarse = resample_to(fine.expand(1, 2, 2, 21).clone(), (2, 2, 11))[0, 0, 0]
+    exact = fine.repeat_interleave(11).reshape(11, 21).mean(1)
+    assert torch.allclose(coarse, exact, atol=1e-12)
+    # and the old adaptive pooling would not pass this
+    pooled = torch.nn.functional.adaptive_avg_pool1d(fine[None, None], 11)[0, 0]
+    assert not torch.allclose(pooled, exact, atol=1e-3)

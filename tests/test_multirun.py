@@ -1,0 +1,27 @@
+"""A multirun where one job fails still runs the others, marks the failure and lists it."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+from flamerecon.runner import FAILED_FILE
+from tests.tiny_scene import REPO, TINY
+
+
+def test_failed_job_does_not_stop_the_sweep(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "train.py"), "--multirun", *TINY, "solver.max_iters=5",
+         "holdout=[cam99],[cam01]", f"hydra.sweep.dir={tmp_path}"],
+        capture_output=True, text=True, env=env, timeout=300, check=False,
+    )
+    assert proc.returncode == 1, proc.stderr
+    bad, good = tmp_path / "0", tmp_path / "1"
+    assert "holdout: unknown view 'cam99'" in (bad / FAILED_FILE).read_text()
+    assert not (bad / "density.npz").exists()
+    assert (good / "metrics.json").is_file() and not (good / FAILED_FILE).exists()
+    assert "flamerecon: 1 of 2 jobs failed:" in proc.stderr
+    assert f"{bad}: holdout: unknown view 'cam99'" in proc.stderr
+    assert "Traceback" not in proc.stderr

@@ -1,0 +1,269 @@
+"""End to end on a tiny synthetic flame: the real Hydra config, shrunk; the run folder's
+contract (DESIGN.md); TensorBoard's own reader; ``python train.py`` as a user runs it;
+``scripts/evaluate.py`` reproducing the run's numbers; bad holdouts refused by name."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import runpy
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from conftest import REPO
+from hydra import compose, initialize_config_dir
+from tensorboard.backend.event_processing import event_accumulator as ea
+
+from flamerecon.pipeline import evaluate, reconstruct
+from flamerecon.scenes import SceneError
+from flamerecon.scenes.synthetic import ring_cameras
+
+#: smaller still, for runs that only have to start (bad input) or compare two backends.
+SMALLER = ["scene.width=24", "scene.height=18", "scene.phantom_resolution=16", "grid.resolution=8"]
+
+#: the real config shrunk to seconds: 5 cameras at 48x36, a 32-cell phantom, a 16-cell grid.
+TINY = [
+    "scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",
+    "grid.resolution=16", "solver.max_iters=30", "log.eval_every=10", "device=cpu",
+]
+VIEWS = [f"cam{i:02d}" for i in range(5)]
+HELDOUT, TRAIN = ["cam04"], VIEWS[:4]  # the scene's default holdout: the last camera
+
+
+def tiny_config(*overrides: str):
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose(config_name="train", overrides=[*TINY, *overrides])
+
+
+class CliRun:
+    """``python train.py TINY... overrides... hydra.run.dir=RUN_DIR`` from the repo root, as a
+    user types it, in a subprocess."""
+
+    def __init__(self, run_dir, *overrides: str):
+        self.run_dir = run_dir
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        self.args = [sys.executable, "train.py", *TINY, *overrides, f"hydra.run.dir={run_dir}"]
+        self.proc = subprocess.Popen(self.args, cwd=REPO, env=env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self._done: subprocess.CompletedProcess | None = None
+
+    def result(self) -> subprocess.CompletedProcess:
+        if self._done is None:
+            out, err = self.proc.communicate(timeout=300)
+            self._done = subprocess.CompletedProcess(self.args, self.proc.returncode, out, err)
+        return self._done
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate()
+
+
+@pytest.fixture(scope="module")
+def composed_run(tmp_path_factory):
+    """reconstruct() on the composed config: (run folder, returned metrics)."""
+    run_dir = tmp_path_factory.mktemp("composed")
+    return run_dir, reconstruct(tiny_config(), run_dir)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def cli_runs(tmp_path_factory):
+    """``python train.py`` with fista and with adam, started in the background when this
+    module's first test starts, so that they run while the in-process tests do."""
+    base = tmp_path_factory.mktemp("cli")
+    runs = {name: CliRun(base / name, f"solver={name}") for name in ("fista", "adam")}
+    yield runs
+    for run in runs.values():
+        run.stop()
+
+
+@pytest.fixture(scope="module")
+def cli_run(cli_runs):
+    """The finished fista run: (run folder, completed process)."""
+    run = cli_runs["fista"]
+    return run.run_dir, run.result()
+
+
+def check_metrics_schema(metrics: dict, solver: str) -> None:
+    assert set(metrics["heldout"]) == set(HELDOUT)
+    assert set(metrics["train"]) == set(TRAIN)
+    for per_view in (*metrics["heldout"].values(), *metrics["train"].values()):
+        assert {"psnr", "ssim"} <= set(per_view)
+        assert 10.0 < per_view["psnr"] < 80.0 and 0.0 < per_view["ssim"] <= 1.0
+    s = metrics["solver"]
+    assert {"name", "iterations", "seconds", "objective"} <= set(s)
+    assert s["name"] == solver
+    assert isinstance(s["iterations"], int) and 1 <= s["iterations"] <= 30
+    assert s["seconds"] > 0 and math.isfinite(s["objective"]) and s["objective"] >= 0
+    assert set(metrics["volume"]) == {"rel_l2", "iou"}
+    assert 0.0 <= metrics["volume"]["rel_l2"] < 1.0 and 0.0 < metrics["volume"]["iou"] <= 1.0
+
+
+# --------------------------------------------------------------------------- run folder
+
+
+def test_metrics_json_is_what_reconstruct_returns_and_follows_the_schema(composed_run):
+    run_dir, metrics = composed_run
+    on_disk = json.loads((run_dir / "metrics.json").read_text())
+    assert on_disk == json.loads(json.dumps(metrics))
+    check_metrics_schema(on_disk, "fista")
+    # the fit explains the views better than a black image does
+    for per_view in (*on_disk["heldout"].values(), *on_disk["train"].values()):
+        assert per_view["psnr"] > per_view["psnr_black"] + 5
+
+
+def test_density_npz_holds_the_volume_its_box_and_the_training_views(composed_run):
+    run_dir, _ = composed_run
+    with np.load(run_dir / "density.npz") as f:
+        density, lo, hi, views = f["density"], f["bbox_min"], f["bbox_max"], f["views"]
+    assert density.dtype == np.float32
+    assert density.shape == (3, 11, 16, 11)  # 16 cells along y (1.5), 11 along x and z (1.0)
+    assert density.min() >= 0 and density.max() > 0
+    assert np.allclose(lo, [-0.5, 0.0, -0.5]) and np.allclose(hi, [0.5, 1.5, 0.5])
+    assert views.tolist() == TRAIN
+
+
+def test_cameras_json_lists_every_camera_with_its_calibration_and_split(composed_run):
+    run_dir, _ = composed_run
+    cams = json.loads((run_dir / "cameras.json").read_text())["cameras"]
+    assert [c["name"] for c in cams] == VIEWS
+    assert [c["split"] for c in cams] == ["train"] * 4 + ["holdout"]
+    expected = ring_cameras(5, 48, 36)
+    for i, c in enumerate(cams):
+        K, E = np.array(c["K"]), np.array(c["world_to_camera"])
+        assert K.shape == (3, 3) and E.shape == (4, 4)
+        assert (c["width"], c["height"]) == (48, 36)
+        assert np.allclose(K, expected.intrinsics[i, :3, :3].numpy())
+        assert np.allclose(E, expected.extrinsics[i].numpy(), atol=1e-6)
+        assert np.allclose(E[:3, :3] @ E[:3, :3].T, np.eye(3), atol=1e-5)
+        assert np.allclose(E[3], [0, 0, 0, 1])
+
+
+def test_renders_show_each_heldout_view_rendered_captured_and_error(composed_run):
+    run_dir, _ = composed_run
+    assert sorted(p.name for p in (run_dir / "renders").iterdir()) == ["cam04.png"]
+    panel = cv2.imread(str(run_dir / "renders" / "cam04.png"))
+    assert panel.shape == (36, 3 * 48, 3)
+    rendered, captured, error = (panel[:, 48 * i:48 * (i + 1)].astype(float) for i in range(3))
+    flame = captured.max(-1) > 60
+    assert flame.sum() > 20  # the flame is there
+    assert np.abs(rendered - captured)[flame].mean() < 0.2 * captured[flame].mean()
+    # the third panel is the absolute error, amplified 4x (8-bit rounding aside)
+    assert np.abs(error - np.clip(4 * np.abs(rendered - captured), 0, 255)).max() <= 4
+
+
+def test_tensorboard_reader_finds_scalars_and_images(composed_run):
+    run_dir, metrics = composed_run
+    acc = ea.EventAccumulator(str(run_dir), size_guidance={ea.SCALARS: 0, ea.IMAGES: 0})
+    acc.Reload()
+    tags = acc.Tags()
+    assert {"solve/objective", "solve/data", "solve/l1", "solve/nonzero_fraction",
+            "eval/heldout_psnr"} <= set(tags["scalars"])
+    assert {"heldout/cam04", "density/top_view"} <= set(tags["images"])
+    objective = acc.Scalars("solve/objective")
+    assert len(objective) >= 3 and objective[-1].value <= objective[0].value
+    psnr = acc.Scalars("eval/heldout_psnr")
+    assert [e.step for e in psnr][:3] == [10, 20, 30]  # every log.eval_every iterations
+    assert psnr[-1].value == pytest.approx(metrics["heldout"]["cam04"]["psnr"], abs=1e-4)
+    image = acc.Images("heldout/cam04")[-1]
+    assert (image.width, image.height) == (3 * 48, 36)
+    assert len(acc.Images("density/top_view")) >= 3  # the top view over iterations
+
+
+# --------------------------------------------------------------------------- the command line
+
+
+def test_train_py_runs_as_a_subprocess_and_prints_the_table(cli_run):
+    run_dir, proc = cli_run
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = proc.stdout
+    for row in ("held-out PSNR [dB]", "held-out SSIM", "training PSNR [dB]",
+                "volume rel. L2 / IoU", "solver", "iterations", "seconds"):
+        assert row in out, out
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    check_metrics_schema(metrics, "fista")
+    assert f"{metrics['heldout']['cam04']['psnr']:.2f}" in out
+    assert (run_dir / ".hydra" / "config.yaml").is_file()
+    assert (run_dir / "density.npz").is_file() and (run_dir / "renders" / "cam04.png").is_file()
+
+
+def test_the_subprocess_run_matches_the_composed_run(cli_run, composed_run):
+    (run_dir, _), (_, metrics) = cli_run, composed_run
+    on_disk = json.loads((run_dir / "metrics.json").read_text())
+    assert on_disk["heldout"]["cam04"]["psnr"] == pytest.approx(metrics["heldout"]["cam04"]["psnr"], abs=1e-3)
+
+
+def test_evaluate_reproduces_the_heldout_psnr_of_a_finished_run(cli_run, capsys):
+    run_dir, proc = cli_run
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    before = json.loads((run_dir / "metrics.json").read_text())
+    (run_dir / "metrics.json").unlink()
+    again = evaluate(run_dir, device="cpu")
+    assert again["heldout"]["cam04"]["psnr"] == pytest.approx(before["heldout"]["cam04"]["psnr"], abs=1e-6)
+    assert again["volume"]["rel_l2"] == pytest.approx(before["volume"]["rel_l2"], abs=1e-6)
+    assert json.loads((run_dir / "metrics.json").read_text())["solver"] == before["solver"]
+    # and the script does the same from the command line
+    (run_dir / "metrics.json").unlink()
+    argv = sys.argv
+    sys.argv = ["scripts/evaluate.py", str(run_dir), "--device", "cpu"]
+    try:
+        with pytest.raises(SystemExit) as stop:
+            runpy.run_path(str(REPO / "scripts" / "evaluate.py"), run_name="__main__")
+    finally:
+        sys.argv = argv
+    assert stop.value.code == 0
+    assert "held-out PSNR [dB]" in capsys.readouterr().out
+    script = json.loads((run_dir / "metrics.json").read_text())
+    assert script["heldout"]["cam04"]["psnr"] == pytest.approx(before["heldout"]["cam04"]["psnr"], abs=1e-6)
+
+
+def test_evaluate_names_a_folder_that_is_not_a_run(tmp_path):
+    with pytest.raises(FileNotFoundError, match="config.yaml"):
+        evaluate(tmp_path)
+
+
+def test_adam_runs_through_the_command_line(cli_runs):
+    run = cli_runs["adam"]
+    proc = run.result()
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "adam" in proc.stdout
+    check_metrics_schema(json.loads((run.run_dir / "metrics.json").read_text()), "adam")
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+@pytest.mark.parametrize("holdout, named", [
+    ("[cam09]", "cam09"),
+    ("[cam00,cam01,cam02,cam03,cam04]", "every view"),
+    ("[7]", "view index 7"),
+])
+def test_a_bad_holdout_is_refused_with_a_message_naming_it(tmp_path, holdout, named):
+    with pytest.raises(SceneError, match=named) as err:
+        reconstruct(tiny_config(*SMALLER, f"holdout={holdout}"), tmp_path)
+    assert "holdout" in str(err.value)
+    assert not (tmp_path / "density.npz").exists()
+
+
+def test_holdout_takes_names_indices_and_negative_indices(small_scene):
+    assert small_scene.split(None) == ([0, 1, 2, 3, 4], [5])
+    assert small_scene.split(["cam02", 4]) == ([0, 1, 3, 5], [2, 4])
+    assert small_scene.split([-1, "cam05"]) == ([0, 1, 2, 3, 4], [5])
+    assert small_scene.split("3") == ([0, 1, 2, 4, 5], [3])
+
+
+def test_both_backends_reconstruct_the_same_volume(tmp_path):
+    runs = {}
+    for backend in ("matrix_free", "assembled"):
+        cfg = tiny_config(*SMALLER, f"projector.backend={backend}", "solver.max_iters=5")
+        runs[backend] = reconstruct(cfg, tmp_path / backend)
+    a = np.load(tmp_path / "matrix_free" / "density.npz")["density"]
+    b = np.load(tmp_path / "assembled" / "density.npz")["density"]
+    assert b.max() > 0
+    assert np.abs(a - b).max() <= 1e-3 * b.max()
+    assert runs["matrix_free"]["solver"]["objective"] == pytest.approx(
+        runs["assembled"]["solver"]["objective"], rel=1e-4)

@@ -1,0 +1,75 @@
+"""A tiny synthetic scene (5 cameras, 48x36), generated once per test session and registered as
+``scene.name=defective``, with ``++scene.defect=NAME`` breaking one thing in it; and the tiny
+config that uses it."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from kornia.geometry.camera import PinholeCamera
+from omegaconf import OmegaConf
+
+from flamerecon.scenes import SCENE_LOADERS, register_scene
+from flamerecon.scenes.synthetic import load as load_synthetic
+from flamerecon.silhouettes import silhouettes
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",
+        "grid.resolution=16", "solver.max_iters=10", "log.eval_every=0"]
+
+
+def tiny_cfg(*overrides: str):
+    """The tiny config; its scene is the cached tiny synthetic one (``defective(...)`` breaks it)."""
+    scene = ["scene.name=defective", "++scene.defect=none"]
+    with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
+        return compose("train", overrides=[*TINY, *scene, *overrides])
+
+
+@functools.lru_cache(maxsize=1)
+def tiny_synthetic():
+    return load_synthetic(OmegaConf.create({"name": "synthetic", "n_cameras": 5, "width": 48, "height": 36,
+                                                "phantom_resolution": 32}))
+
+
+def _defect(scene, defect: str):
+    """A copy of the tiny synthetic scene with one thing broken."""
+    cams = scene.cameras
+    images, K4, E = scene.images.clone(), cams.intrinsics.clone(), cams.extrinsics.clone()
+    width, views, masks = cams.width.clone(), list(scene.views), None
+    if defect == "nan_image":
+        images[1, 0, 5, 5] = float("nan")
+    elif defect == "inf_image":
+        images[0, 2, 1, 1] = float("inf")
+    elif defect == "dark_view":
+        images[2] = 0.0
+    elif defect == "looks_away":  # turn camera 3 around its own y axis by 180 degrees
+        E[3] = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0])) @ E[3]
+    elif defect == "size_mismatch":
+        width[0] = 50
+    elif defect == "negative_focal":
+        K4[1, 0, 0] = -K4[1, 0, 0]
+    elif defect == "not_orthonormal":
+        E[2, :3, :3] *= 1.1
+    elif defect == "missing_view_name":
+        views = views[1:]
+    elif defect == "disjoint_silhouette":  # cam02's silhouette: a speck at its left edge
+        masks = silhouettes(images)
+        masks[2] = False
+        masks[2, 17:19, :2] = True
+    cams = PinholeCamera(K4, E, cams.height.clone(), width)
+    return type(scene)(**{**scene.__dict__, "images": images, "cameras": cams, "views": views,
+                          "masks": masks, "source": f"defective.json ({defect})"})
+
+
+if "defective" not in SCENE_LOADERS:
+    @register_scene("defective")
+    def _load_defective(cfg):
+        scene = tiny_synthetic()
+        return scene if cfg["defect"] == "none" else _defect(scene, cfg["defect"])
+
+
+def defective(defect: str) -> list[str]:
+    return [f"++scene.defect={defect}"]
