@@ -266,6 +266,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
     device = resolve_device(cfg.device)
     if cfg.solver.name not in SOLVERS:
         raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
