@@ -27,16 +27,18 @@ from .checks import (
     memory_budget,
 )
 from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
+from .evaluation import masked_scores, native_scores, silhouette_union
 from .export import export_run, load_density, save_density
 from .figures import top_view
 from .grid import VoxelGrid
 from .guard import SolveGuard, StopSolve, stop_signals
 from .hull import visual_hull
 from .metrics import psnr, resample_to, ssim, volume_errors
+from .photometry import apply_gain_offset, fit_gain_offset_rows, normalize_gains
 from .projector import camera_rays, make_operator, render_image
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
-from .solvers import SOLVERS, Problem, SolveResult, make_solver, resolve_l1
+from .solvers import SOLVERS, Problem, Solver, SolveResult, make_solver, resolve_l1
 from .tb_logging import RunWriter, side_by_side
 
 log = logging.getLogger(__name__)
@@ -65,6 +67,7 @@ class Setup:
     operator: object  # LinearOperator (N, M)
     pixels: torch.Tensor  # (N, C) training pixel values inside the silhouettes
     step: float
+    row_view: torch.Tensor | None = None  # (N,) long: position in ``train`` of each pixel row
 
     def volume(self, x: torch.Tensor) -> torch.Tensor:
         """Hull values (M, C) -> dense density (C, nz, ny, nx)."""
@@ -106,10 +109,90 @@ def prepare(cfg: DictConfig, scene: Scene, device: torch.device) -> Setup:
     rays, flat = camera_rays(cams, masks[train])
     C = images.shape[1]
     pixels = images[train].permute(0, 2, 3, 1).reshape(-1, C)[flat].contiguous()
+    row_view = flat // (images.shape[-2] * images.shape[-1])
     step = float(cfg.projector.step)
     backend = choose_backend(cfg.projector.backend, grid, rays, voxel_index, step, device, budget)
     operator = make_operator(backend, grid, rays, voxel_index, step)
-    return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step)
+    return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view)
+
+
+def make_problem(cfg: DictConfig, setup: Setup) -> tuple[Problem, Solver, float]:
+    """The solve of ``cfg`` on ``setup``: (problem, solver, absolute l1 weight)."""
+    if cfg.solver.name not in SOLVERS:
+        raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
+    l1, l1_rel = cfg.solver.get("l1"), cfg.solver.get("l1_rel")
+    if l1 is not None:
+        l1_rel = None  # an absolute weight wins over the relative default
+    try:
+        l1 = resolve_l1(setup.operator, setup.pixels, l1, l1_rel)
+        solver = make_solver(cfg.solver.name, **solver_options(cfg))
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
+    problem = Problem(setup.operator, setup.pixels, l1, grid_shape=setup.grid.shape,
+                      voxel_index=setup.voxel_index)
+    return problem, solver, l1
+
+
+@dataclass
+class Photometry:
+    """Per training camera ``image = gain * integral + offset`` (``gain``, ``offset``: (T,))."""
+
+    gain: torch.Tensor
+    offset: torch.Tensor
+    iterations: list[int]  # of each re-solve
+
+    def per_view(self, setup: Setup) -> dict[str, tuple[float, float]]:
+        """{view name: (gain, offset)} for every view; held-out views get (1, 0)."""
+        out = {name: (1.0, 0.0) for name in setup.scene.views}
+        for k, v in enumerate(setup.train):
+            out[setup.scene.views[v]] = (float(self.gain[k]), float(self.offset[k]))
+        return out
+
+
+def fit_photometry(cfg: DictConfig, setup: Setup, problem: Problem, solver: Solver,
+                   result: SolveResult) -> tuple[SolveResult, Photometry | None]:
+    """With ``photometry.fit_gain``: ``photometry.rounds`` times, fit each training camera's
+    gain and offset to the current density's line integrals on its silhouette rows (gains
+    normalized to geometric mean 1, so held-out cameras keep gain 1 and offset 0), then solve
+    again from the current density on ``(pixels - offset) / gain``. Returns the last solve and
+    the fitted photometry (None when off)."""
+    opts = cfg.get("photometry") or {}
+    if not opts.get("fit_gain", False):
+        return result, None
+    rounds = int(opts.get("rounds", 2))
+    if rounds < 1:
+        raise ConfigError(f"photometry.rounds: must be at least 1 when photometry.fit_gain is on, got {rounds}")
+    T = len(setup.train)
+    iterations, seconds = [], result.seconds
+    gain = offset = None
+    for _ in range(rounds):
+        with torch.no_grad():
+            predicted = setup.operator.forward(result.x)
+        gain, offset = fit_gain_offset_rows(predicted, setup.pixels, setup.row_view, T,
+                                            bool(opts.get("fit_offset", True)))
+        if not bool((gain > 0).all()):
+            bad = [setup.scene.views[setup.train[k]] for k in (gain <= 0).nonzero().flatten().tolist()]
+            raise ConfigError(f"photometry.fit_gain: cameras {bad} got a gain <= 0 (their images do not "
+                              "follow the density's line integrals); run with photometry.fit_gain=false")
+        gain = normalize_gains(gain)
+        b = (setup.pixels - offset[setup.row_view, None]) / gain[setup.row_view, None]
+        again = Problem(setup.operator, b, problem.l1, grid_shape=problem.grid_shape,
+                        voxel_index=problem.voxel_index)
+        result = solver.solve(again, x0=result.x)
+        iterations.append(result.iterations)
+        seconds += result.seconds
+    result.seconds = seconds
+    return result, Photometry(gain.cpu(), offset.cpu(), iterations)
+
+
+def solve(cfg: DictConfig, setup: Setup, x0: torch.Tensor | None = None
+          ) -> tuple[SolveResult, float, Photometry | None]:
+    """Solve ``setup`` as ``cfg`` says, without a run folder (no callback, checkpoints or
+    logging): (result, absolute l1 weight, fitted photometry or None)."""
+    problem, solver, l1 = make_problem(cfg, setup)
+    result = solver.solve(problem, x0=x0)
+    result, photometry = fit_photometry(cfg, setup, problem, solver, result)
+    return result, l1, photometry
 
 
 def initial_guess(path: str | Path, grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
@@ -131,17 +214,21 @@ def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: lis
     return render_image(volume, grid, cams, step).cpu()
 
 
-def score_views(rendered: torch.Tensor, scene: Scene, views: list[int]) -> dict[str, dict[str, float]]:
+def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
+                masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
     """Per view: full-frame PSNR and SSIM against the captured image, and the PSNR of an
-    all-black prediction (the floor that gives a number its meaning)."""
+    all-black prediction (the floor that gives a number its meaning); with ``masks``
+    (V, H, W) bool also both PSNRs inside them (see :func:`~flamerecon.evaluation.masked_scores`)."""
     out = {}
-    for img, v in zip(rendered, views):
+    for k, (img, v) in enumerate(zip(rendered, views)):
         captured = scene.images[v]
         out[scene.views[v]] = {
             "psnr": psnr(img, captured),
             "ssim": ssim(img, captured),
             "psnr_black": psnr(torch.zeros_like(captured), captured),
         }
+        if masks is not None:
+            out[scene.views[v]].update(masked_scores(img, captured, masks[k]))
     return out
 
 
@@ -157,10 +244,13 @@ def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: li
         atomic_write_bytes(folder / f"{scene.views[v]}.png", png.tobytes())
 
 
-def cameras_record(scene: Scene, train: list[int]) -> list[dict]:
-    """cameras.json content: every camera with K, world_to_camera, size and its role."""
+def cameras_record(scene: Scene, train: list[int],
+                   photometry: dict[str, tuple[float, float]] | None = None) -> list[dict]:
+    """cameras.json content: every camera with K, world_to_camera, size, its role, and its
+    ``gain`` and ``offset`` (image = gain * integral + offset; 1 and 0 unless fitted)."""
     K = K_of(scene.cameras).cpu()
     E = scene.cameras.extrinsics.cpu()
+    photometry = photometry or {}
     return [
         {
             "name": name,
@@ -169,18 +259,32 @@ def cameras_record(scene: Scene, train: list[int]) -> list[dict]:
             "width": int(scene.cameras.width[i]),
             "height": int(scene.cameras.height[i]),
             "split": "train" if i in train else "holdout",
+            "gain": photometry.get(name, (1.0, 0.0))[0],
+            "offset": photometry.get(name, (1.0, 0.0))[1],
         }
         for i, name in enumerate(scene.views)
     ]
 
 
 def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
-          step: float) -> tuple[dict, torch.Tensor]:
-    """Metrics of a density (C, nz, ny, nx): held-out and training views, volume errors
-    against the truth when the scene has one. Returns (metrics, held-out renders)."""
+          step: float, silhouette: dict | None = None,
+          photometry: dict[str, tuple[float, float]] | None = None) -> tuple[dict, torch.Tensor]:
+    """Metrics of a density (C, nz, ny, nx): held-out and training views (with ``silhouette``
+    options also inside the silhouette union; training renders through each camera's
+    ``photometry`` (gain, offset) when given), volume errors against the truth when the
+    scene has one. Returns (metrics, held-out renders)."""
     held_imgs = render_views(volume, grid, scene, holdout, step)
     train_imgs = render_views(volume, grid, scene, train, step)
-    metrics = {"heldout": score_views(held_imgs, scene, holdout), "train": score_views(train_imgs, scene, train)}
+    if photometry:
+        gain = torch.tensor([photometry[scene.views[v]][0] for v in train])
+        offset = torch.tensor([photometry[scene.views[v]][1] for v in train])
+        train_imgs = apply_gain_offset(train_imgs, gain, offset)
+    held_masks = train_masks = None
+    if silhouette is not None:
+        held_masks = silhouette_union(held_imgs, scene, holdout, silhouette)
+        train_masks = silhouette_union(train_imgs, scene, train, silhouette)
+    metrics = {"heldout": score_views(held_imgs, scene, holdout, held_masks),
+               "train": score_views(train_imgs, scene, train, train_masks)}
     if scene.truth is not None:
         truth = resample_to(scene.truth, grid.shape) if scene.truth_grid is not None and (
             scene.truth_grid.bbox_min == grid.bbox_min and scene.truth_grid.bbox_max == grid.bbox_max
@@ -202,8 +306,21 @@ def summary_table(metrics: dict) -> str:
         ("held-out PSNR [dB]", (f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
                                f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})")),
         ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
-        ("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"),
     ]
+    held = list(metrics["heldout"].values())
+    if held and "psnr_silhouette" in held[0]:
+        rows.append(("  inside silhouettes [dB]", (
+            f"{mean_of(metrics['heldout'], 'psnr_silhouette'):.2f}  "
+            f"(black image: {mean_of(metrics['heldout'], 'psnr_black_silhouette'):.2f})")))
+    if held and "psnr_native" in held[0]:
+        W, H = metrics["resolution"]["native"]
+        rows += [
+            (f"  native {W}x{H} PSNR [dB]", (
+                f"{mean_of(metrics['heldout'], 'psnr_native'):.2f}  "
+                f"(black image: {mean_of(metrics['heldout'], 'psnr_black_native'):.2f})")),
+            (f"  native {W}x{H} SSIM", f"{mean_of(metrics['heldout'], 'ssim_native'):.4f}"),
+        ]
+    rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"))
     if "volume" in metrics:
         rows.append(("volume rel. L2 / IoU", f"{metrics['volume']['rel_l2']:.4f} / {metrics['volume']['iou']:.4f}"))
     rows += [
@@ -276,16 +393,7 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     ckpt = load_checkpoint(run_dir) if resume else None
     scene = load_scene(cfg.scene)
     setup = prepare(cfg, scene, device)
-    l1, l1_rel = cfg.solver.get("l1"), cfg.solver.get("l1_rel")
-    if l1 is not None:
-        l1_rel = None  # an absolute weight wins over the relative default
-    try:
-        l1 = resolve_l1(setup.operator, setup.pixels, l1, l1_rel)
-        solver = make_solver(cfg.solver.name, **solver_options(cfg))
-    except ValueError as err:
-        raise ConfigError(str(err)) from err
-    problem = Problem(setup.operator, setup.pixels, l1, grid_shape=setup.grid.shape,
-                      voxel_index=setup.voxel_index)
+    problem, solver, l1 = make_problem(cfg, setup)
     meta = {"solver": cfg.solver.name, "shape": list(setup.operator.shape),
             "channels": int(setup.pixels.shape[1]), "l1": l1}
     x0, start, seconds_before = None, 0, 0.0
@@ -319,7 +427,11 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
                 it, x = guard.last_good
                 log.error("solve %s; keeping the last good iterate (iteration %d)", stop, it)
                 result = SolveResult(x, it, guard.seconds(), problem.objective(x), False)
-        metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped)
+        photometry = None
+        if stopped is None:
+            result, photometry = fit_photometry(cfg, setup, problem, solver, result)
+        metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped,
+                                photometry)
     finally:
         monitor.close()
         writer.close()
@@ -357,7 +469,8 @@ def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.
 
 
 def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, writer: RunWriter,
-                  monitor: Monitor, result: SolveResult, l1: float, stopped: StopSolve | None) -> dict:
+                  monitor: Monitor, result: SolveResult, l1: float, stopped: StopSolve | None,
+                  photometry: Photometry | None = None) -> dict:
     """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries."""
     volume = setup.volume(result.x)
     solver_info = {
@@ -370,13 +483,18 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
         solver_info["rel_gap"] = gaps[-1]
     if stopped is not None:
         solver_info["stopped"] = {"iteration": stopped.iteration, "reason": stopped.detail}
+    per_view = None
+    if photometry is not None:
+        solver_info["photometry"] = {"rounds": len(photometry.iterations), "iterations": photometry.iterations}
+        per_view = photometry.per_view(setup)
     train_names = [scene.views[i] for i in setup.train]
     save_density(
         run_dir / "density.npz", volume.cpu(), setup.grid.bbox_min, setup.grid.bbox_max,
         train_names, solver=json.dumps(solver_info), frame=int(cfg.scene.get("frame", 0)),
     )
-    write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
-    metrics = finish(run_dir, scene, volume, setup.grid, setup.train, setup.holdout, setup.step, solver_info)
+    write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train, per_view)})
+    metrics = finish(cfg, run_dir, scene, volume, setup.grid, setup.train, setup.holdout, setup.step,
+                     solver_info, per_view)
     monitor.pictures(result.iterations, result.x)
     writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
                                                   setup.grid.bbox_max), 0, "HWC")
@@ -400,10 +518,22 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
     return out
 
 
-def finish(run_dir: Path, scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int],
-           holdout: list[int], step: float, solver_info: dict) -> dict:
-    """Score, write renders/ and metrics.json."""
-    metrics, held_imgs = score(scene, volume, grid, train, holdout, step)
+def finish(cfg: DictConfig, run_dir: Path, scene: Scene, volume: torch.Tensor, grid: VoxelGrid,
+           train: list[int], holdout: list[int], step: float, solver_info: dict,
+           photometry: dict[str, tuple[float, float]] | None = None, native: bool = False) -> dict:
+    """Score, write renders/ and metrics.json. With ``native`` the held-out views are also
+    scored at the capture's native resolution (when the run works below it)."""
+    silhouette = OmegaConf.to_container(cfg.silhouette, resolve=True)
+    metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
+    H, W = scene.image_size
+    metrics["resolution"] = {"working": [W, H]}
+    if native:
+        found = native_scores(cfg.scene, volume, grid, [scene.views[v] for v in holdout], step)
+        if found is not None:
+            per_view, size = found
+            for name, values in per_view.items():
+                metrics["heldout"][name].update(values)
+            metrics["resolution"]["native"] = list(size)
     metrics["solver"] = solver_info
     write_renders(run_dir, held_imgs, scene, holdout)
     write_json_atomic(run_dir / "metrics.json", metrics)
@@ -418,9 +548,19 @@ def run_config(run_dir: str | Path) -> DictConfig:
     return OmegaConf.load(cfg_path)
 
 
-def evaluate(run_dir: str | Path, device: str = "auto") -> dict:
+def read_photometry(run_dir: Path) -> dict[str, tuple[float, float]] | None:
+    """{view: (gain, offset)} from a run's cameras.json, None when it has none."""
+    path = run_dir / "cameras.json"
+    if not path.is_file():
+        return None
+    cams = json.loads(path.read_text()).get("cameras", [])
+    return {c["name"]: (float(c.get("gain", 1.0)), float(c.get("offset", 0.0))) for c in cams}
+
+
+def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> dict:
     """Re-render the views of a finished run from its saved ``density.npz`` and config,
-    write ``metrics.json`` and ``renders/``; returns the metrics."""
+    write ``metrics.json`` and ``renders/``; returns the metrics. With ``native`` the held-out
+    views are also scored at the capture's native resolution (``scene.downscale=1``)."""
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
     saved = load_density(run_dir / "density.npz")
@@ -432,4 +572,5 @@ def evaluate(run_dir: str | Path, device: str = "auto") -> dict:
     volume = torch.from_numpy(saved.density).to(resolve_device(device))
     with np.load(run_dir / "density.npz") as f:
         solver_info = json.loads(str(f["solver"])) if "solver" in f.files else {}
-    return finish(run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step), solver_info)
+    return finish(cfg, run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step),
+                  solver_info, read_photometry(run_dir), native)

@@ -1,9 +1,13 @@
 """Held-out-view evaluation of a finished run.
 
-    python scripts/evaluate.py RUN_DIR [--device auto|cpu|cuda]
+    python scripts/evaluate.py RUN_DIR [--device auto|cpu|cuda] [--no-native]
 
 Re-renders the run's views from its saved density.npz (and the scene named in its Hydra
-config), writes RUN_DIR/metrics.json and RUN_DIR/renders/, and prints the summary table.
+config), writes RUN_DIR/metrics.json and RUN_DIR/renders/ (rendered | captured | error), and
+prints the summary table. Per held-out view: PSNR and SSIM over the full frame at the working
+resolution, PSNR inside the union of the captured and rendered silhouettes, and, when the run
+works below native resolution (scene.downscale > 1), PSNR and SSIM over the full native frame;
+each PSNR beside that of an all-black image (the floor).
 """
 
 from __future__ import annotations
@@ -22,10 +26,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a run folder written by train.py")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda")
+    parser.add_argument("--no-native", dest="native", action="store_false",
+                        help="skip the native-resolution scores (loading full-size frames)")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
     try:
-        metrics = evaluate(args.run_dir, device=args.device)
+        metrics = evaluate(args.run_dir, device=args.device, native=args.native)
     except (FlameReconError, FileNotFoundError) as err:
         if args.debug:
             raise

@@ -17,7 +17,7 @@ from ..cameras import intrinsics_matrix, look_at, make_cameras
 from ..grid import VoxelGrid
 from ..projector import render_image
 from . import register_scene
-from .base import Scene
+from .base import Scene, SceneError
 
 BOX_MIN = (-0.5, 0.0, -0.5)
 BOX_MAX = (0.5, 1.5, 0.5)
@@ -107,10 +107,28 @@ def _crop_to_support(volume: torch.Tensor, grid: VoxelGrid) -> tuple[torch.Tenso
     return v.contiguous(), sub
 
 
+def downscale(images: torch.Tensor, cams, factor: int):
+    """Area-average images (B, C, H, W) by an integer ``factor`` and scale the cameras'
+    intrinsics to match (pixel centres at +0.5 scale exactly with the size ratio), as the
+    capture loaders' ``scene.downscale`` does. Returns (images, cameras)."""
+    if factor == 1:
+        return images, cams
+    H, W = images.shape[-2:]
+    h, w = H // factor, W // factor
+    if h < 1 or w < 1:
+        raise SceneError(f"config: scene.downscale: {factor} leaves no pixels of a {W}x{H} image")
+    # cropping the right and bottom remainder keeps pixel coordinates, so K scales by 1/factor
+    small = F.interpolate(images[..., : h * factor, : w * factor], size=(h, w), mode="area")
+    S = torch.diag(torch.tensor([1.0 / factor, 1.0 / factor, 1.0]))
+    K = S.to(cams.intrinsics.dtype) @ cams.intrinsics[:, :3, :3]
+    return small, make_cameras(K, cams.extrinsics, h, w)
+
+
 @register_scene("synthetic")
 def load(cfg) -> Scene:
-    """Config keys: n_cameras, width, height, phantom_resolution, phantom_step, noise,
-    frame, seed, peak (brightest pixel before noise)."""
+    """Config keys: n_cameras, width, height (the native size), downscale (the working size is
+    width // downscale x height // downscale), phantom_resolution, phantom_step, noise, frame,
+    seed, peak (brightest pixel before noise)."""
     n = int(cfg.get("n_cameras", 8))
     W, H = int(cfg.get("width", 320)), int(cfg.get("height", 240))
     seed = int(cfg.get("seed", 0))
@@ -127,6 +145,10 @@ def load(cfg) -> Scene:
     # read noise sigma, growing with brightness like photon noise: std = sigma * sqrt(1 + 4 I)
     std = sigma * torch.sqrt(1 + 4 * clean.clamp_min(0))
     images = (clean + std * torch.randn(clean.shape, generator=g)).clamp(0, 1)
+    factor = cfg.get("downscale", 1)
+    if isinstance(factor, bool) or int(factor) != factor or int(factor) < 1:
+        raise SceneError(f"config: scene.downscale: must be a positive integer, got {factor!r}")
+    images, cams = downscale(images, cams, int(factor))
     views = [f"cam{i:02d}" for i in range(n)]
     return Scene(
         name="synthetic", views=views, cameras=cams, images=images,

@@ -1,0 +1,88 @@
+"""Leave-one-view-out: reconstruct K times, each time holding out one camera and fitting the
+others, and score every held-out view (the scene is loaded once; each split is prepared anew).
+
+``exclude`` drops views from every fit without scoring them, so that settings can be chosen
+by cross-validation over the training views without ever looking at a test view.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from .atomic import write_json_atomic
+from .evaluation import silhouette_union
+from .pipeline import (
+    initial_guess,
+    prepare,
+    render_views,
+    resolve_device,
+    score_views,
+    solve,
+    write_renders,
+)
+from .scenes import SceneError, load_scene
+
+#: the per-view numbers averaged into the table's last row.
+AVERAGED = ("psnr", "ssim", "psnr_black", "psnr_silhouette", "psnr_black_silhouette")
+
+
+def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None = None,
+                  exclude: list[str] | None = None, progress=None) -> dict:
+    """Hold out each of ``views`` in turn (default: every view not in ``exclude``), fit the
+    rest (minus ``exclude``) as ``cfg`` says, score the held-out view. Writes
+    ``out_dir/loo.json`` and ``out_dir/renders/<view>.png``; returns loo.json's dict:
+    ``views`` {name: scores, iterations, seconds, l1, train}, ``mean`` over views of
+    :data:`AVERAGED`, ``exclude``, ``config``. ``progress(name, row)`` is called per view."""
+    out_dir = Path(out_dir)
+    device = resolve_device(cfg.device)
+    scene = load_scene(cfg.scene)
+    exclude = list(exclude or [])
+    for name in [*exclude, *(views or [])]:
+        if name not in scene.views:
+            raise SceneError(f"leave-one-out: unknown view '{name}'; scene '{scene.name}' has {scene.views}")
+    views = list(views) if views else [v for v in scene.views if v not in exclude]
+    if len(scene.views) - len(exclude) < 2:
+        raise SceneError(f"leave-one-out: excluding {exclude} leaves fewer than two views of {scene.views}")
+    silhouette = OmegaConf.to_container(cfg.silhouette, resolve=True)
+    rows = {}
+    for name in views:
+        split = cfg.copy()
+        split.holdout = [name, *[e for e in exclude if e != name]]
+        setup = prepare(split, scene, device)
+        x0 = initial_guess(cfg.init, setup.grid, setup.voxel_index) if cfg.get("init") else None
+        result, l1, _ = solve(split, setup, x0)
+        v = scene.views.index(name)
+        image = render_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)
+        masks = silhouette_union(image, scene, [v], silhouette)
+        row = score_views(image, scene, [v], masks)[name]
+        row.update(iterations=result.iterations, seconds=result.seconds, l1=l1,
+                   train=[scene.views[i] for i in setup.train])
+        rows[name] = row
+        write_renders(out_dir, image, scene, [v])
+        if progress is not None:
+            progress(name, row)
+    mean = {k: sum(r[k] for r in rows.values()) / len(rows) for k in AVERAGED}
+    record = {"views": rows, "mean": mean, "exclude": exclude,
+              "config": OmegaConf.to_container(cfg, resolve=False)}
+    write_json_atomic(out_dir / "loo.json", record)
+    return record
+
+
+def loo_table(record: dict) -> str:
+    """The table printed at the end: one row per held-out view and the mean."""
+    head = f"  {'view':<12} {'PSNR':>7} {'SSIM':>7} {'black':>7} {'PSNR sil':>9} {'black sil':>9}"
+    lines = [head, "  " + "-" * (len(head) - 2)]
+
+    def line(name: str, r: dict) -> str:
+        vals = [r["psnr"], r["ssim"], r["psnr_black"], r["psnr_silhouette"], r["psnr_black_silhouette"]]
+        p, s, b, ps, bs = (x if math.isfinite(x) else float("nan") for x in vals)
+        return f"  {name:<12} {p:7.2f} {s:7.4f} {b:7.2f} {ps:9.2f} {bs:9.2f}"
+
+    lines += [line(name, r) for name, r in record["views"].items()]
+    lines += ["  " + "-" * (len(head) - 2), line("mean", record["mean"])]
+    if record["exclude"]:
+        lines.append(f"  (excluded from every fit: {', '.join(record['exclude'])})")
+    return "\n".join(lines)

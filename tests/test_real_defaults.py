@@ -1,0 +1,39 @@
+"""scene=scalarflow brings the settings cross-validated on that capture (solver, weights, grid,
+working resolution) while the command line still wins and the synthetic defaults stay."""
+
+from __future__ import annotations
+
+from conftest import REPO
+from hydra import compose, initialize_config_dir
+
+from flamerecon.pipeline import solver_options
+from flamerecon.solvers import make_solver
+
+
+def composed(*overrides: str):
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose(config_name="train", overrides=list(overrides))
+
+
+def test_scalarflow_picks_its_cross_validated_solver_grid_and_resolution():
+    cfg = composed("scene=scalarflow")
+    assert cfg.scene.name == "scalarflow" and cfg.scene.downscale == 4
+    assert cfg.solver.name == "fista_smooth"
+    assert (cfg.solver.smooth, cfg.solver.l1_rel, cfg.solver.l1) == (0.1, 0.01, None)
+    assert cfg.grid.resolution == 128
+    make_solver(cfg.solver.name, **solver_options(cfg))  # a complete, valid solver config
+
+
+def test_the_command_line_wins_over_the_scene_defaults():
+    cfg = composed("scene=scalarflow", "solver=fista", "grid.resolution=96", "solver.max_iters=7")
+    assert cfg.solver.name == "fista" and "smooth" not in cfg.solver
+    assert cfg.grid.resolution == 96 and cfg.solver.max_iters == 7
+    make_solver(cfg.solver.name, **solver_options(cfg))
+    cfg = composed("scene=scalarflow", "solver.smooth=0.3", "scene.downscale=2")
+    assert (cfg.solver.name, cfg.solver.smooth, cfg.scene.downscale) == ("fista_smooth", 0.3, 2)
+
+
+def test_the_synthetic_defaults_are_unchanged():
+    cfg = composed()
+    assert (cfg.scene.name, cfg.solver.name, cfg.grid.resolution) == ("synthetic", "fista", 64)
+    assert cfg.solver.l1_rel == 0.001 and cfg.photometry.fit_gain is False
