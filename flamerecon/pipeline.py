@@ -325,7 +325,9 @@ def summary_table(metrics: dict) -> str:
         rows.append(("volume rel. L2 / IoU", f"{metrics['volume']['rel_l2']:.4f} / {metrics['volume']['iou']:.4f}"))
     rows += [
         ("solver", f"{s['name']} (l1 = {s['l1']:.4g})"),
-        ("iterations", f"{s['iterations']}{'' if s['converged'] else ' (not converged)'}"),
+        ("iterations", f"{s['iterations']}" + (
+            "" if s.get("converged", True) else " (the iteration budget"
+            + (f"; relative duality gap {s['rel_gap']:.1e})" if "rel_gap" in s else ")"))),
         ("seconds", f"{s['seconds']:.2f}"),
     ]
     width = max(len(r[0]) for r in rows)
@@ -383,6 +385,8 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
     device = resolve_device(cfg.device)
     if cfg.solver.name not in SOLVERS:
         raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
@@ -474,6 +478,9 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
         "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
         "status": "finished" if stopped is None else "diverged",
     }
+    gaps = [h["rel_gap"] for h in result.history if "rel_gap" in h]
+    if gaps:
+        solver_info["rel_gap"] = gaps[-1]
     if stopped is not None:
         solver_info["stopped"] = {"iteration": stopped.iteration, "reason": stopped.detail}
     per_view = None

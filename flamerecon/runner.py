@@ -33,6 +33,15 @@ def record_failure(run_dir: str | Path, message: str) -> Path | None:
     return atomic_write_text(folder / FAILED_FILE, message.rstrip() + "\n")
 
 
+def script_error(err: Exception, debug: bool) -> int:
+    """A script's known error as one line on stderr (re-raised with ``debug``); returns the
+    exit status."""
+    if debug:
+        raise err
+    print(f"flamerecon: error: {err}", file=sys.stderr)
+    return getattr(err, "exit_code", 2)
+
+
 def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False) -> float | None:
     """Reconstruct (or resume, with ``resume=RUN_DIR``) and print the summary; returns the mean
     held-out PSNR, or None for a multirun job that failed."""

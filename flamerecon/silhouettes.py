@@ -43,7 +43,7 @@ def _disk(radius: int) -> np.ndarray:
 
 def _drop_specks(mask: np.ndarray, min_area: int) -> np.ndarray:
     """``mask`` (H, W) uint8 without its 8-connected blobs of fewer than ``min_area`` pixels."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     keep = stats[:, cv2.CC_STAT_AREA] >= min_area
     keep[0] = False  # background
     return keep[labels].astype(mask.dtype)

@@ -20,6 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from flamerecon.errors import FlameReconError
 from flamerecon.pipeline import evaluate, summary_table
+from flamerecon.runner import script_error
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -33,10 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         metrics = evaluate(args.run_dir, device=args.device, native=args.native)
     except (FlameReconError, FileNotFoundError) as err:
-        if args.debug:
-            raise
-        print(f"flamerecon: error: {err}", file=sys.stderr)
-        return getattr(err, "exit_code", 2)
+        return script_error(err, args.debug)
     print(f"{args.run_dir}\n{summary_table(metrics)}")
     return 0
 

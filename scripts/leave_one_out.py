@@ -23,6 +23,7 @@ from hydra.errors import HydraException
 
 from flamerecon.errors import FlameReconError
 from flamerecon.leave_one_out import leave_one_out, loo_table
+from flamerecon.runner import script_error
 
 
 def names(value: str | None) -> list[str]:
@@ -47,10 +48,7 @@ def main(argv: list[str] | None = None) -> int:
                                            f"{r['iterations']} iterations, {r['seconds']:.1f} s", flush=True),
         )
     except (FlameReconError, FileNotFoundError, HydraException) as err:
-        if args.debug:
-            raise
-        print(f"flamerecon: error: {err}", file=sys.stderr)
-        return getattr(err, "exit_code", 2)
+        return script_error(err, args.debug)
     print(f"leave-one-view-out, {cfg.scene.name}: {out / 'loo.json'}\n{loo_table(record)}")
     return 0
 

@@ -50,7 +50,8 @@ def lasso_case():
 
 def test_fista_reaches_sklearn_objective(lasso_case):
     A, b, lam, ref = lasso_case
-    res = make_solver("fista", tol=1e-6, max_iters=5000).solve(Problem(csr(A), torch.tensor(b), lam))
+    res = make_solver("fista", tol=1e-5, max_iters=5000).solve(Problem(csr(A), torch.tensor(b), lam))
+    assert res.converged
     assert (res.x >= 0).all()
     assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-4 * ref
 
@@ -63,15 +64,6 @@ def test_adam_reaches_sklearn_objective(lasso_case):
     assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-3 * ref
     # and the objective it reports is the one it reached
     assert res.objective == pytest.approx(objective(A, b, lam, res.x.numpy()), rel=1e-5)
-
-
-def test_csr_forward_is_differentiable_with_adjoint_backward():
-    A, b, _ = tiny_problem(seed=1, C=3)
-    op = csr(A)
-    x = torch.rand(A.shape[1], 3, dtype=torch.float32, requires_grad=True)
-    y = torch.tensor(b)
-    (op.forward(x) * y).sum().backward()  # d/dx <A x, y> = A^T y
-    torch.testing.assert_close(x.grad, torch.tensor(A.T @ b), rtol=1e-5, atol=1e-5)
 
 
 def test_lars_matches_sklearn_at_the_same_lambda(lasso_case):
@@ -154,3 +146,11 @@ def test_lambda_at_l1_rel_one_gives_zero_solution():
     problem.l1 = resolve_l1(problem, l1_rel=1.0 + 1e-4)
     res = make_solver("fista", tol=1e-6).solve(problem)
     assert float(res.x.abs().max()) == 0.0
+
+
+def test_lbfgsb_reaches_sklearn_objective(lasso_case):
+    A, b, lam, ref = lasso_case
+    res = make_solver("lbfgsb", tol=1e-6, max_iters=2000, check_every=5).solve(
+        Problem(csr(A), torch.tensor(b), lam))
+    assert (res.x >= 0).all()
+    assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-4 * ref

@@ -73,7 +73,7 @@ def test_fista_smooth_matches_lbfgsb():
     assert abs(ours - ref.fun) <= 1e-4 * ref.fun
     assert res.objective == pytest.approx(ours, rel=1e-5)
     # the penalty changes the answer: plain fista lands elsewhere
-    plain = make_solver("fista", tol=1e-6, max_iters=5000).solve(problem)
+    plain = make_solver("fista", tol=1e-5, max_iters=5000).solve(problem)
     assert f(plain.x.double().numpy().ravel())[0] > ref.fun * (1 + 1e-3)
 
 

@@ -17,7 +17,7 @@ import torch
 from ..cameras import make_cameras
 from ..photometry import linearize
 from ..silhouettes import estimate_bbox, silhouettes
-from .base import SceneError
+from .base import Scene, SceneError
 
 #: repository root (the folder holding ``flamerecon/``), against which relative roots resolve.
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -302,3 +302,22 @@ def undistort(image: np.ndarray, K_opencv: np.ndarray, dist: np.ndarray) -> np.n
         return image
     out = cv2.undistort(image, K_opencv, dist)
     return out[:, :, None] if out.ndim == 2 else out
+
+
+def make_scene(
+    cfg, path, default_name: str, names: list[str], images: list[np.ndarray], Ks, w2cs,
+    sources: list, file_box, holdout: list[str], frame: int, **meta,
+) -> Scene:
+    """The Scene every loader returns: views stacked and checked, the box chosen (config,
+    file, or silhouettes), ``holdout`` checked against the view names."""
+    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
+    lo, hi, box_source = choose_box(cfg, file_box, cams, batch, path)
+    unknown = [h for h in holdout if h not in names]
+    if unknown:
+        raise SceneError(f"{path}: holdout: views {unknown} are not among the cameras {names}")
+    return Scene(
+        name=str(option(cfg, "name", default_name)), views=names, cameras=cams, images=batch,
+        bbox_min=lo, bbox_max=hi, default_holdout=list(holdout), source=str(path),
+        meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source),
+              **meta},
+    )

@@ -29,11 +29,10 @@ from . import register_scene
 from .base import Scene, SceneError
 from .calibration import (
     box_from_value,
-    build_views,
     check_image_size,
     check_rigid,
-    choose_box,
     distortion,
+    make_scene,
     option,
     positive,
     resolve_root,
@@ -128,23 +127,6 @@ def load_nerf(cfg) -> Scene:
         sources.append(source)
         file_paths.append(file_path)
     names = _view_names(file_paths)
-    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
     file_box = box_from_value(data["bbox"], path, "bbox") if "bbox" in data else None
-    lo, hi, box_source = choose_box(cfg, file_box, cams, batch, path)
     holdout = list(option(cfg, "holdout", []))
-    unknown = [h for h in holdout if h not in names]
-    if unknown:
-        raise SceneError(
-            f"config: scene.holdout: views {unknown} are not in {path} (it has {names})"
-        )
-    return Scene(
-        name=str(option(cfg, "name", "nerf")),
-        views=names,
-        cameras=cams,
-        images=batch,
-        bbox_min=lo,
-        bbox_max=hi,
-        default_holdout=holdout,
-        source=str(path),
-        meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source)},
-    )
+    return make_scene(cfg, path, "nerf", names, images, Ks, w2cs, sources, file_box, holdout, frame)

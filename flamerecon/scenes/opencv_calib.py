@@ -34,12 +34,11 @@ from . import register_scene
 from .base import Scene, SceneError
 from .calibration import (
     box_from_value,
-    build_views,
     check_image_size,
     check_intrinsics,
     check_rotation,
-    choose_box,
     distortion,
+    make_scene,
     matrix,
     option,
     resolve_root,
@@ -222,21 +221,6 @@ def load_opencv(cfg) -> Scene:
         w2cs.append(w2c)
         names.append(name)
         sources.append(source)
-    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
     file_box = box_from_value(top["bbox"], path, "bbox") if "bbox" in top else None
-    lo, hi, box_source = choose_box(cfg, file_box, cams, batch, path)
     holdout = list(option(cfg, "holdout", None) or top.get("holdout") or [])
-    unknown = [h for h in holdout if h not in names]
-    if unknown:
-        raise SceneError(f"{path}: holdout: views {unknown} are not among the cameras {names}")
-    return Scene(
-        name=str(option(cfg, "name", "opencv")),
-        views=names,
-        cameras=cams,
-        images=batch,
-        bbox_min=lo,
-        bbox_max=hi,
-        default_holdout=holdout,
-        source=str(path),
-        meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source)},
-    )
+    return make_scene(cfg, path, "opencv", names, images, Ks, w2cs, sources, file_box, holdout, frame)

@@ -25,10 +25,9 @@ from ..cameras import opengl_c2w_to_opencv_w2c
 from . import register_scene
 from .base import Scene, SceneError
 from .calibration import (
-    build_views,
     check_image_size,
     check_rigid,
-    choose_box,
+    make_scene,
     matrix,
     option,
     positive,
@@ -121,22 +120,7 @@ def load_pinf(cfg) -> Scene:
         sources.append(source)
         if held:
             holdout.append(name)
-    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
-    lo, hi, box_source = choose_box(cfg, pinf_box(info, path), cams, batch, path)
-    meta = {
-        "frame": frame,
-        "files": [str(s) for s in sources],
-        "bbox_source": str(box_source),
-        **{k: info[k] for k in ("near", "far") if k in info},
-    }
-    return Scene(
-        name=str(option(cfg, "name", "scalarflow")),
-        views=names,
-        cameras=cams,
-        images=batch,
-        bbox_min=lo,
-        bbox_max=hi,
-        default_holdout=holdout,
-        source=str(path),
-        meta=meta,
+    return make_scene(
+        cfg, path, "scalarflow", names, images, Ks, w2cs, sources, pinf_box(info, path), holdout,
+        frame, **{k: info[k] for k in ("near", "far") if k in info},
     )

@@ -3,6 +3,8 @@ O'Donoghue & Candes 2015 for the gradient restart)."""
 
 from __future__ import annotations
 
+import time
+
 import torch
 
 from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
@@ -13,12 +15,13 @@ class Fista(Solver):
     """Accelerated proximal gradient; step 1/L with L = ||A||^2 from power iteration.
 
     Stops when the relative duality gap (checked every ``check_every`` iterations) is below
-    ``tol`` or after ``max_iters``.
+    ``tol``, after ``max_iters``, or at the first check past ``max_seconds`` (if set).
     """
 
     def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
-                 restart: bool = True, **_: object) -> None:
+                 restart: bool = True, max_seconds: float | None = None, **_: object) -> None:
         self.max_iters = int(max_iters)
+        self.max_seconds = None if max_seconds is None else float(max_seconds)
         self.tol = float(tol)
         self.check_every = max(1, int(check_every))
         self.restart = bool(restart)
@@ -30,9 +33,11 @@ class Fista(Solver):
                 lipschitz: float | None = None) -> SolveResult:
         """FISTA from ``x`` (M, C); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
         A, b, lam = problem.A, problem.b, problem.l1
+        t_start = time.perf_counter()
         resume = self._take_resume()
         if resume is None:
-            L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
+            L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(
+                A, A.shape[1], b.device, b.dtype)
             y, t, start, history = x.clone(), 1.0, 1, []
         else:  # continue exactly where state() was taken (x is resume["x"])
             L, t, start = resume["L"], resume["t"], resume["iteration"] + 1
@@ -57,11 +62,15 @@ class Fista(Solver):
                     "gap": gap,
                     "rel_gap": gap / max(primal, 1e-30),
                 }
+                entry = {"iteration": it, **info}
+                history.append(entry)
                 if callback is not None:
                     self._state = {"iteration": it, "x": x, "y": y, "t": t, "L": L, "history": history}
-                    callback(it, x, info)  # may add entries (fista_smooth splits the data term)
-                history.append({"iteration": it, **info})
+                    callback(it, x, info)
+                    entry.update(info)  # a callback may add entries (fista_smooth splits the data)
                 if info["rel_gap"] < self.tol:
                     converged = True
+                    break
+                if self.max_seconds is not None and time.perf_counter() - t_start > self.max_seconds:
                     break
         return SolveResult(x, it, 0.0, problem.objective(x), converged, history)
