@@ -7,6 +7,7 @@ Every check raises :class:`SceneError` with one line that names the file and the
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -58,6 +59,22 @@ def resolve_root(root, field: str = "scene.root") -> Path:
             return candidate.resolve()
     tried = ", ".join(str(c) for c in dict.fromkeys(candidates))
     raise SceneError(f"config: {field}: '{root}' does not exist (tried {tried})")
+
+
+def read_json_object(root: Path, file_name: str, expected: str) -> tuple[dict, Path]:
+    """The JSON object in ``root/file_name`` (or in ``root`` when it is a file) and its path;
+    ``expected`` says what its top level must hold, for the error message."""
+    path = root / file_name if root.is_dir() else root
+    if not path.is_file():
+        raise SceneError(f"{path}: {file_name} not found")
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise SceneError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(data, dict):
+        raise SceneError(f"{path}: top level must be an object with {expected}")
+    return data, path
 
 
 def matrix(value, shape: tuple[int, ...], file, field: str) -> np.ndarray:

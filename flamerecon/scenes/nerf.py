@@ -17,7 +17,6 @@ names held out by default), ``silhouette``.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -35,26 +34,13 @@ from .calibration import (
     make_scene,
     option,
     positive,
+    read_json_object,
     resolve_root,
     undistort,
 )
 from .frames import read_path_frame
 
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
-
-
-def _read_transforms(root: Path, file_name: str) -> tuple[dict, Path]:
-    path = root / file_name if root.is_dir() else root
-    if not path.is_file():
-        raise SceneError(f"{path}: transforms file not found")
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise SceneError(f"{path}: not valid JSON ({err})") from None
-    if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
-        raise SceneError(f"{path}: frames: missing or empty")
-    return data, path
 
 
 def _intrinsics(params: dict, width: int, height: int, path, where: str) -> np.ndarray:
@@ -99,7 +85,9 @@ def _view_names(paths: list[str]) -> list[str]:
 def load_nerf(cfg) -> Scene:
     """Load a ``transforms.json`` capture as a Scene (views in file order)."""
     root = resolve_root(option(cfg, "root"))
-    data, path = _read_transforms(root, str(option(cfg, "file", "transforms.json")))
+    data, path = read_json_object(root, str(option(cfg, "file", "transforms.json")), "frames")
+    if not isinstance(data.get("frames"), list) or not data["frames"]:
+        raise SceneError(f"{path}: frames: missing or empty")
     folder = path.parent
     frame = int(option(cfg, "frame", 0))
     images, Ks, w2cs, sources, file_paths = [], [], [], [], []

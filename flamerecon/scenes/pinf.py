@@ -14,7 +14,6 @@ Config (``scene`` node): ``root`` (the folder or the info.json), ``frame``, ``do
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from .calibration import (
     matrix,
     option,
     positive,
+    read_json_object,
     resolve_root,
 )
 from .frames import read_camera_frame
@@ -51,20 +51,6 @@ def pinf_box(info: dict, file) -> tuple[tuple, tuple] | None:
     return tuple(corners.min(0).tolist()), tuple(corners.max(0).tolist())
 
 
-def _read_info(root: Path) -> tuple[dict, Path]:
-    path = root / "info.json" if root.is_dir() else root
-    if not path.is_file():
-        raise SceneError(f"{path}: info.json not found")
-    try:
-        with open(path) as f:
-            info = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise SceneError(f"{path}: not valid JSON ({err})") from None
-    if not isinstance(info, dict):
-        raise SceneError(f"{path}: top level must be an object with train_videos / test_videos")
-    return info, path
-
-
 def _camera_entries(info: dict, path: Path) -> list[tuple[str, dict, bool]]:
     """(field path, entry, held out) for every camera, in file order: train then test."""
     entries = []
@@ -83,7 +69,7 @@ def _camera_entries(info: dict, path: Path) -> list[tuple[str, dict, bool]]:
 def load_pinf(cfg) -> Scene:
     """Load one frame of a PINF/HyFluid capture as a Scene (views in file order)."""
     root = resolve_root(option(cfg, "root"))
-    info, path = _read_info(root)
+    info, path = read_json_object(root, "info.json", "train_videos / test_videos")
     folder = path.parent
     frame = int(option(cfg, "frame", 0))
     names, images, Ks, w2cs, sources, holdout = [], [], [], [], [], []
