@@ -94,6 +94,13 @@ class VoxelGrid:
         c = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=torch.float32)
         return lo + c * (hi - lo)
 
+    def dense(self, values: torch.Tensor, voxel_index: torch.Tensor) -> torch.Tensor:
+        """Scatter values (M, C) of the voxels ``voxel_index`` (M,) (flat indices) into a dense
+        volume (C, nz, ny, nx), zero elsewhere; differentiable in ``values``."""
+        C = values.shape[1]
+        vol = values.new_zeros(C, self.num_voxels).index_copy(1, voxel_index, values.T)
+        return vol.reshape(C, *self.shape)
+
     def scaled(self, factor: float) -> VoxelGrid:
         """Same box, resolution multiplied by ``factor`` (coarse-to-fine, finer phantoms)."""
         res = tuple(max(1, round(r * factor)) for r in self.resolution)

@@ -71,10 +71,7 @@ class Setup:
 
     def volume(self, x: torch.Tensor) -> torch.Tensor:
         """Hull values (M, C) -> dense density (C, nz, ny, nx)."""
-        C = x.shape[1]
-        vol = x.new_zeros(C, self.grid.num_voxels)
-        vol[:, self.voxel_index] = x.T
-        return vol.reshape(C, *self.grid.shape)
+        return self.grid.dense(x, self.voxel_index)
 
 
 def scene_grid(cfg: DictConfig, scene: Scene) -> VoxelGrid:
@@ -355,9 +352,15 @@ class Monitor:
             self.pictures(it, x)
 
     def pictures(self, it: int, x: torch.Tensor) -> None:
+        """Render the held-out views of the iterate x (M, C) and log them."""
         s = self.setup
         vol = s.volume(x.detach())
-        imgs = render_views(vol, s.grid, s.scene, s.holdout, s.step)
+        self.log_pictures(it, vol, render_views(vol, s.grid, s.scene, s.holdout, s.step))
+
+    def log_pictures(self, it: int, vol: torch.Tensor, imgs: torch.Tensor) -> None:
+        """Held-out PSNR, held-out renders imgs (V, C, H, W) beside the captured views, and the
+        top view of vol (C, nz, ny, nx), at step ``it``."""
+        s = self.setup
         scores = score_views(imgs, s.scene, s.holdout)
         self.writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix="eval")
         for img, v in zip(imgs, s.holdout):
@@ -493,9 +496,9 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
         train_names, solver=json.dumps(solver_info), frame=int(cfg.scene.get("frame", 0)),
     )
     write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train, per_view)})
-    metrics = finish(cfg, run_dir, scene, volume, setup.grid, setup.train, setup.holdout, setup.step,
-                     solver_info, per_view)
-    monitor.pictures(result.iterations, result.x)
+    metrics, held_imgs = finish(cfg, run_dir, scene, volume, setup.grid, setup.train, setup.holdout,
+                                setup.step, solver_info, per_view)
+    monitor.log_pictures(result.iterations, volume, held_imgs)  # the final renders, not again
     writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
                                                   setup.grid.bbox_max), 0, "HWC")
     writer.hparams(
@@ -520,9 +523,11 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
 
 def finish(cfg: DictConfig, run_dir: Path, scene: Scene, volume: torch.Tensor, grid: VoxelGrid,
            train: list[int], holdout: list[int], step: float, solver_info: dict,
-           photometry: dict[str, tuple[float, float]] | None = None, native: bool = False) -> dict:
-    """Score, write renders/ and metrics.json. With ``native`` the held-out views are also
-    scored at the capture's native resolution (when the run works below it)."""
+           photometry: dict[str, tuple[float, float]] | None = None,
+           native: bool = False) -> tuple[dict, torch.Tensor]:
+    """Score, write renders/ and metrics.json; returns the metrics and the held-out renders
+    (V, C, H, W). With ``native`` the held-out views are also scored at the capture's native
+    resolution (when the run works below it)."""
     silhouette = OmegaConf.to_container(cfg.silhouette, resolve=True)
     metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
     H, W = scene.image_size
@@ -537,7 +542,7 @@ def finish(cfg: DictConfig, run_dir: Path, scene: Scene, volume: torch.Tensor, g
     metrics["solver"] = solver_info
     write_renders(run_dir, held_imgs, scene, holdout)
     write_json_atomic(run_dir / "metrics.json", metrics)
-    return metrics
+    return metrics, held_imgs
 
 
 def run_config(run_dir: str | Path) -> DictConfig:
@@ -572,5 +577,6 @@ def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> 
     volume = torch.from_numpy(saved.density).to(resolve_device(device))
     with np.load(run_dir / "density.npz") as f:
         solver_info = json.loads(str(f["solver"])) if "solver" in f.files else {}
-    return finish(cfg, run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step),
-                  solver_info, read_photometry(run_dir), native)
+    metrics, _ = finish(cfg, run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step),
+                        solver_info, read_photometry(run_dir), native)
+    return metrics

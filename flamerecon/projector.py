@@ -278,15 +278,8 @@ class MatrixFreeOperator:
         self.box = support_box(grid, self.voxel_index)
         self.shape = (len(rays), int(voxel_index.numel()))
 
-    def volume(self, x: torch.Tensor) -> torch.Tensor:
-        """Scatter hull values (M, C) into a dense volume (C, nz, ny, nx)."""
-        C = x.shape[1]
-        vol = x.new_zeros(C, self.grid.num_voxels)
-        vol = vol.index_copy(1, self.voxel_index, x.T)
-        return vol.reshape(C, *self.grid.shape)
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return integrate_dense(self.volume(x), self.grid, self.rays, self.step, self.box)
+        return integrate_dense(self.grid.dense(x, self.voxel_index), self.grid, self.rays, self.step, self.box)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
         x = torch.zeros(self.shape[1], y.shape[1], dtype=y.dtype, device=y.device, requires_grad=True)

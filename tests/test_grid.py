@@ -80,3 +80,16 @@ def test_scaled_keeps_the_box_and_multiplies_the_resolution(box_grid):
     fine = box_grid.scaled(2)
     assert fine.resolution == (16, 24, 12)
     assert (fine.bbox_min, fine.bbox_max) == (box_grid.bbox_min, box_grid.bbox_max)
+
+
+def test_dense_scatters_hull_values_and_is_differentiable():
+    grid = VoxelGrid.from_box((0, 0, 0), (1, 2, 3), [3, 4, 5])
+    index = torch.tensor([0, 7, 59])
+    values = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]], requires_grad=True)
+    vol = grid.dense(values, index)
+    assert vol.shape == (2, 5, 4, 3)
+    flat = vol.reshape(2, -1)
+    assert torch.equal(flat[:, index].T, values.detach())
+    assert float(flat.detach().sum()) == float(values.detach().sum())  # zero elsewhere
+    (vol * torch.arange(vol.numel()).reshape(vol.shape)).sum().backward()
+    assert torch.equal(values.grad, torch.stack([index, index + 60], 1).float())
