@@ -344,7 +344,7 @@ class Monitor:
         self.bar.update(it - self.last)
         self.last = it
         self.bar.set_postfix(objective=f"{info['objective']:.4g}", gap=f"{info.get('rel_gap', math.nan):.1e}")
-        values = {k: info[k] for k in ("objective", "data", "l1", "rel_gap") if k in info}
+        values = {k: info[k] for k in ("objective", "data", "l1", "smooth", "tv", "rel_gap") if k in info}
         values["nonzero_fraction"] = float((x > 0).any(1).float().mean())
         self.writer.scalars(it, values)
         every = int(self.cfg.log.eval_every)
