@@ -7,6 +7,8 @@ from __future__ import annotations
 import copy
 import itertools
 import json
+import os
+import signal
 import subprocess
 import sys
 
@@ -15,7 +17,8 @@ import pytest
 import torch
 from tensorboard.backend.event_processing import event_accumulator as ea
 
-from flamerecon.errors import ConfigError
+from flamerecon import pipeline
+from flamerecon.errors import ConfigError, Interrupted
 from flamerecon.pipeline import reconstruct
 from flamerecon.solvers import Problem, make_solver
 from flamerecon.solvers.smoothness import HullGradient, hull_gradient
@@ -26,6 +29,16 @@ scipy_optimize = pytest.importorskip("scipy.optimize")
 
 GRID = (3, 3, 3)  # nz, ny, nx
 HULL = np.array([i for i in range(27) if i not in (0, 8, 13, 26)])  # holes break neighbours
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Tiny solves on one thread: torch's sparse products fork threads however small the matrix,
+    and on a busy shared machine that made this file 5x slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 def grouped_differences(grid_shape, hull) -> tuple[np.ndarray, np.ndarray]:
@@ -199,6 +212,28 @@ def test_resume_from_state_ends_where_an_uninterrupted_solve_ends(tv_case):
     assert again.iterations == full.iterations == 200
     assert torch.equal(again.x, full.x)
     assert [e["iteration"] for e in again.history] == [e["iteration"] for e in full.history]
+
+
+def test_an_interrupted_run_resumes_from_its_checkpoint_to_the_same_density(tmp_path, monkeypatch):
+    cfg = tiny_cfg("grid.resolution=12", "solver=tv", "solver.tv=0.01", "solver.tol=0",
+                   "solver.max_iters=30", "solver.check_every=5", "checkpoint.every=10")
+    original = pipeline.Monitor.__call__
+
+    def interrupt_at_15(self, it, x, info):
+        original(self, it, x, info)
+        if it == 15:
+            os.kill(os.getpid(), signal.SIGINT)  # caught by the run's handler: checkpoint, stop
+
+    monkeypatch.setattr(pipeline.Monitor, "__call__", interrupt_at_15)
+    run, reference = tmp_path / "run", tmp_path / "reference"
+    with pytest.raises(Interrupted, match="at iteration 15"):
+        reconstruct(cfg, run)
+    monkeypatch.setattr(pipeline.Monitor, "__call__", original)
+    resumed = reconstruct(cfg, run, resume=True)
+    straight = reconstruct(cfg, reference)
+    assert resumed["solver"]["objective"] == straight["solver"]["objective"]
+    with np.load(run / "density.npz") as a, np.load(reference / "density.npz") as b:
+        np.testing.assert_array_equal(a["density"], b["density"])
 
 
 def test_bad_weights_and_missing_geometry_are_refused(tmp_path):
