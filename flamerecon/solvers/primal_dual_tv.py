@@ -55,7 +55,9 @@ class PrimalDualTV(Solver):
 
     ``tv`` is relative: mu = tv * max_j (A^T b)_j, the same scale as ``l1_rel`` (l1 =
     l1_rel * max_j (A^T b)_j), so mu is unit-free in the intensity of b and the scale of A,
-    and tv = l1_rel weighs a unit jump between neighbours like a unit of density.
+    and tv = l1_rel weighs a unit jump between neighbours like a unit of density. As with
+    l1_rel, the balance shifts with the grid (TV sums over surfaces, L1 over volumes): choose
+    tv again after changing grid.resolution.
 
     Stops when the relative primal-dual gap (checked every ``check_every`` iterations) is below
     ``tol``, after ``max_iters``, or at the first check past ``max_seconds``. The gap pairs x
@@ -66,7 +68,7 @@ class PrimalDualTV(Solver):
     Needs ``problem.grid_shape`` and ``problem.voxel_index``.
     """
 
-    def __init__(self, tv: float = 0.01, max_iters: int = 2000, tol: float = 1e-4,
+    def __init__(self, tv: float = 1e-3, max_iters: int = 2000, tol: float = 1e-4,
                  check_every: int = 10, dual_step: float | None = None,
                  max_seconds: float | None = None, **_: object) -> None:
         if float(tv) < 0:
