@@ -64,11 +64,15 @@ class PrimalDualTV(Solver):
     with the dual point (t r, t y), r = A x - b, t = min(1, l1 / max_m (-(A^T r + D^T y)_m))
     the largest scale that makes it feasible; with l1 = 0 it is the KKT residual
     <x, A^T r + D^T y> + ||x||_1 max(0, max_m -(A^T r + D^T y)_m) + mu TV(x) - <y, D x>,
-    which equals the gap at a feasible dual point and vanishes at the solution.
+    which equals the gap at a feasible dual point and vanishes at the solution. The gap is a
+    certificate, and a pessimistic one: on the synthetic flame (tv 1e-3) it read 7e-3 after
+    1000 iterations when the objective was within 1e-6 of its optimum, all of it from the
+    scale t (max_m of -(A^T r + D^T y) exceeds l1 by 1%); ``max_iters`` is the practical
+    budget there.
     Needs ``problem.grid_shape`` and ``problem.voxel_index``.
     """
 
-    def __init__(self, tv: float = 1e-3, max_iters: int = 2000, tol: float = 1e-4,
+    def __init__(self, tv: float = 1e-3, max_iters: int = 1000, tol: float = 1e-4,
                  check_every: int = 10, dual_step: float | None = None,
                  max_seconds: float | None = None, **_: object) -> None:
         if float(tv) < 0:
