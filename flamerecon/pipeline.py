@@ -503,7 +503,8 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
                                                   setup.grid.bbox_max), 0, "HWC")
     writer.hparams(
         {"scene": cfg.scene.name, "solver": cfg.solver.name, "l1": l1,
-         "grid": str(setup.grid.resolution), "holdout": ",".join(scene.views[i] for i in setup.holdout)},
+         "grid": str(setup.grid.resolution), "holdout": ",".join(scene.views[i] for i in setup.holdout),
+         **{k: float(cfg.solver[k]) for k in ("smooth", "tv") if cfg.solver.get(k) is not None}},
         flat_metrics(metrics),
     )
     return metrics

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from tensorboard.backend.event_processing import event_accumulator as ea
+from tensorboard.plugins.hparams import plugin_data_pb2
 
 from flamerecon import pipeline
 from flamerecon.errors import ConfigError, Interrupted
@@ -246,7 +247,7 @@ def test_bad_weights_and_missing_geometry_are_refused(tmp_path):
         make_solver("tv").solve(Problem(csr(A), torch.tensor(b), lam))
 
 
-def test_train_py_runs_solver_tv_and_logs_the_tv_term(tmp_path):
+def test_train_py_runs_solver_tv_and_logs_the_tv_term_and_weight(tmp_path):
     run = tmp_path / "run"
     proc = subprocess.run([sys.executable, "train.py", *TINY, "solver=tv", "solver.tv=0.05",
                            "solver.check_every=5", f"hydra.run.dir={run}"],
@@ -259,3 +260,7 @@ def test_train_py_runs_solver_tv_and_logs_the_tv_term(tmp_path):
     acc.Reload()
     tv = acc.Scalars("solve/tv")
     assert [e.step for e in tv] == [5, 10] and tv[-1].value > 0
+    # the relative weight is an hparam, so a sweep over solver.tv shows in TensorBoard
+    start = plugin_data_pb2.HParamsPluginData.FromString(
+        acc.PluginTagToContent("hparams")["_hparams_/session_start_info"]).session_start_info
+    assert start.hparams["tv"].number_value == pytest.approx(0.05)
