@@ -9,10 +9,6 @@ from .errors import ConfigError
 from .grid import VoxelGrid
 
 
-def _cells(grid: VoxelGrid) -> str:
-    return "x".join(str(n) for n in grid.resolution)
-
-
 def level_grids(levels: Sequence | None, fine: VoxelGrid) -> list[VoxelGrid]:
     """The grids of ``levels`` (each an int: cells along the box's longest side, or
     [nx, ny, nz]) on the box of ``fine``, coarsest first. Each must be coarser than the next
@@ -28,10 +24,11 @@ def level_grids(levels: Sequence | None, fine: VoxelGrid) -> list[VoxelGrid]:
     for k, (a, b) in enumerate(zip(grids, [*grids[1:], fine])):
         if a.resolution == b.resolution or any(p > q for p, q in zip(a.resolution, b.resolution)):
             what = f"level {list(levels)[k + 1]}" if k + 1 < len(grids) else "grid.resolution"
+            mine, theirs = ("x".join(map(str, g.resolution)) for g in (a, b))
             raise ConfigError(
-                f"grid.levels: level {list(levels)[k]} ({_cells(a)} cells) is not coarser than {what} "
-                f"({_cells(b)} cells); list the levels coarsest first, each coarser than the next "
-                f"and than grid.resolution, e.g. grid.levels=[16,32] for grid.resolution=64"
+                f"grid.levels: level {list(levels)[k]} ({mine} cells) is not coarser than {what} "
+                f"({theirs} cells); list the levels coarsest first, each coarser than the next and "
+                "than grid.resolution, e.g. grid.levels=[16,32] for grid.resolution=64"
             )
     return grids
 

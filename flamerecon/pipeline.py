@@ -399,6 +399,11 @@ def summary_table(metrics: dict) -> str:
             + (f"; relative duality gap {s['rel_gap']:.1e})" if "rel_gap" in s else ")"))),
         ("seconds", f"{s['seconds']:.2f}"),
     ]
+    if "levels" in s:
+        rows.append(("grid levels", "; ".join(
+            f"{cells_of(r['resolution'])}: {r['iterations']} it, "
+            f"{r['setup_seconds']:.2f} s setup + {r['seconds']:.2f} s solve"
+            for r in s["levels"])))
     width = max(len(r[0]) for r in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
 
@@ -546,9 +551,14 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     return metrics
 
 
+def cells_of(resolution) -> str:
+    """``nx x ny x nz`` of a resolution (nx, ny, nz), for messages."""
+    return "x".join(str(n) for n in resolution)
+
+
 def cells(grid: VoxelGrid) -> str:
     """``nx x ny x nz`` of a grid, for messages."""
-    return "x".join(str(n) for n in grid.resolution)
+    return cells_of(grid.resolution)
 
 
 def problem_meta(cfg: DictConfig, setup: Setup, l1: float, level: int, plan: list[list[int]]) -> dict:
