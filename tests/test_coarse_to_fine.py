@@ -1,7 +1,8 @@
 """Coarse-to-fine grids (``grid.levels``): no levels is the plain solve bit for bit; each level
 starts from the previous solution resampled onto it; the warm start does not end worse than a
-cold start with the same fine budget; bad level lists are refused by name; an interrupted
-coarse level resumes; ``python train.py grid.levels=[...]`` end to end."""
+cold start with the same fine budget; the L1 weight of each level; leave-one-out solves the
+levels; bad level lists are refused by name; an interrupted coarse level resumes;
+``python train.py grid.levels=[...]`` end to end."""
 
 from __future__ import annotations
 
@@ -32,6 +33,15 @@ def _density(run) -> np.ndarray:
 
 def _solver_info(run) -> dict:
     return json.loads((run / "metrics.json").read_text())["solver"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One torch thread: on a busy two-core machine two threads make these tiny solves slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 @pytest.fixture
@@ -102,6 +112,25 @@ def test_levels_end_no_worse_than_a_cold_start_with_the_same_fine_budget(tmp_pat
     assert final["objective"] == warm["objective"] and coarse["iterations"] == 30
     # solver.l1_rel is relative to each level's own max(A^T P): larger on the coarser cells
     assert coarse["l1"] > 2 * final["l1"] and final["l1"] == warm["l1"]
+
+
+def test_an_absolute_l1_is_scaled_by_the_cell_volume(tmp_path):
+    run = tmp_path / "run"
+    reconstruct(tiny_cfg(*FIXED, "solver.l1=1e-3", "grid.levels=[8]", "grid.level_iters=5"), run)
+    coarse, final = _solver_info(run)["levels"]
+    assert final["l1"] == 1e-3
+    cells = [r["resolution"][0] * r["resolution"][1] * r["resolution"][2] for r in (coarse, final)]
+    assert coarse["l1"] == pytest.approx(1e-3 * cells[1] / cells[0], rel=1e-12)
+
+
+def test_leave_one_out_solves_the_levels_in_every_fold(tmp_path, solves):
+    from flamerecon.leave_one_out import leave_one_out
+
+    cfg = tiny_cfg(*FIXED, "solver.max_iters=5", "grid.levels=[8]")
+    leave_one_out(cfg, tmp_path, views=["cam03", "cam04"])
+    shapes = [problem.grid_shape for problem, _, _ in solves]
+    assert shapes == [(5, 8, 5), (11, 16, 11)] * 2
+    assert all(x0 is not None for _, x0, _ in solves[1::2])
 
 
 @pytest.mark.parametrize("levels, match", [
