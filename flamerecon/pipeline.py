@@ -497,26 +497,27 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     volume = None
     if ckpt is None and cfg.get("init"):
         volume = init_volume(cfg.init, grids[0] if grids else fine)
-    writer = RunWriter(str(run_dir))
-    monitor: Monitor | None = None
-    try:
-        def solve_level(level: int, level_cfg: DictConfig, setup: Setup, x0: torch.Tensor | None) -> SolveResult:
-            problem, solver, l1 = make_problem(level_cfg, setup)
-            meta = problem_meta(level_cfg, setup, l1, level, plan)
-            here = ckpt if ckpt is not None and level == at else None
-            if here is None and x0 is not None:  # TensorBoard shows where the warm start begins
-                writer.scalars(0, {"objective": problem.objective(x0)}, prefix=f"level{level}/solve")
-            result, stopped, _ = guarded_solve(level_cfg, run_dir, setup, problem, solver, writer, device,
-                                               meta, x0, here, level, {"level_records": records})
-            if stopped is not None:
-                raise SolveDiverged(
-                    f"{run_dir}: the solve on coarse level grid.levels[{level}] ({cells(setup.grid)} cells) "
-                    f"{stopped}; nothing was written; try a smaller step (solver.lr), another solver, "
-                    "or other grid.levels"
-                )
-            records.append(level_record(setup, l1, result))
-            return result
 
+    def solve_level(level: int, level_cfg: DictConfig, setup: Setup, x0: torch.Tensor | None) -> SolveResult:
+        """Coarse level ``level`` under the watchdog, resumed when the checkpoint is its own."""
+        problem, solver, l1 = make_problem(level_cfg, setup)
+        meta = problem_meta(level_cfg, setup, l1, level, plan)
+        here = ckpt if ckpt is not None and level == at else None
+        if here is None and x0 is not None:  # TensorBoard shows where the warm start begins
+            writer.scalars(0, {"objective": problem.objective(x0)}, prefix=f"level{level}/solve")
+        result, stopped, _ = guarded_solve(level_cfg, run_dir, setup, problem, solver, writer, device,
+                                           meta, x0, here, level, {"level_records": records})
+        if stopped is not None:
+            raise SolveDiverged(
+                f"{run_dir}: the solve on coarse level grid.levels[{level}] ({cells(setup.grid)} cells) "
+                f"{stopped}; nothing was written; try a smaller step (solver.lr), another solver, "
+                "or other grid.levels"
+            )
+        records.append(level_record(setup, l1, result))
+        return result
+
+    writer = RunWriter(str(run_dir))
+    try:
         volume = coarse_levels(cfg, scene, device, volume, 0 if ckpt is None else at, solve_level)
         setup = prepare(cfg, scene, device, fine)
         problem, solver, l1 = make_problem(cfg, setup)

@@ -17,7 +17,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from test_pipeline import CliRun
 
 from flamerecon import pipeline
-from flamerecon.errors import ConfigError, Interrupted, ResumeError
+from flamerecon.errors import ConfigError, Interrupted, ResumeError, SolveDiverged
 from flamerecon.pipeline import prepare, reconstruct, solve
 from flamerecon.solvers import Solver
 from tests.tiny_scene import tiny_cfg, tiny_synthetic
@@ -184,6 +184,13 @@ def test_interrupted_level_resumes_to_the_uninterrupted_result(tmp_path, monkeyp
     assert levels[0]["objective"] == pytest.approx(_solver_info(reference)["levels"][0]["objective"],
                                                    rel=1e-6)
     assert not (run / "checkpoint.pt").exists()
+
+
+def test_a_diverging_coarse_level_stops_the_run_by_name(tmp_path):
+    run = tmp_path / "run"
+    with pytest.raises(SolveDiverged, match=r"coarse level grid.levels\[0\] \(5x8x5 cells\) diverged"):
+        reconstruct(tiny_cfg(*FIXED, "grid.levels=[8]", "checkpoint.divergence_factor=1e-9"), run)
+    assert not (run / "density.npz").exists()
 
 
 def test_train_py_with_levels_end_to_end(tmp_path):
