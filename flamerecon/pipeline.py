@@ -479,7 +479,7 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
     solver_info = {
         "name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
         "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
-        "status": "finished" if stopped is None else "diverged",
+        "status": "finished" if stopped is None else "diverged", "device": str(result.x.device),
     }
     gaps = [h["rel_gap"] for h in result.history if "rel_gap" in h]
     if gaps:
