@@ -9,6 +9,7 @@ from kornia.geometry.camera import PinholeCamera
 
 from ..errors import FlameReconError
 from ..grid import VoxelGrid
+from ..photometry import delinearize
 
 
 class SceneError(FlameReconError, ValueError):
@@ -26,7 +27,9 @@ class Scene:
     - ``default_holdout``: view names held out when the config does not say;
     - ``masks``: optional (B, H, W) bool silhouettes when the source provides them;
     - ``truth`` / ``truth_grid``: optional ground-truth density (C, nz, ny, nx) for synthetic scenes;
-    - ``source``: where the scene came from (file or generator), for messages.
+    - ``source``: where the scene came from (file or generator), for messages;
+    - ``meta``: loader extras; ``meta["response"]`` = {"gamma", "black_level"} when the images
+      were linearized (see :meth:`recorded`).
     """
 
     name: str
@@ -41,6 +44,14 @@ class Scene:
     truth_grid: VoxelGrid | None = None
     source: str = ""
     meta: dict = field(default_factory=dict)
+
+    def recorded(self, images: torch.Tensor) -> torch.Tensor:
+        """Linear images (..., C, H, W), e.g. renders, in the units the cameras recorded (the
+        response curve and black level re-applied), where scores compare with the capture."""
+        response = self.meta.get("response")
+        if not response:
+            return images
+        return delinearize(images, response["gamma"], response["black_level"])
 
     @property
     def num_views(self) -> int:

@@ -336,5 +336,7 @@ def make_scene(
         name=str(option(cfg, "name", default_name)), views=names, cameras=cams, images=batch,
         bbox_min=lo, bbox_max=hi, default_holdout=list(holdout), source=str(path),
         meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source),
+              "response": {"gamma": option(cfg, "gamma", 1.0),
+                           "black_level": float(option(cfg, "black_level", 0.0))},
               **meta},
     )
