@@ -213,12 +213,12 @@ def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: lis
 
 def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
                 masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
-    """Per view, in recorded units (:meth:`Scene.recorded`): full-frame PSNR and SSIM against
+    """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against
     the captured image, and the PSNR of an all-black prediction (the floor that gives a number its meaning); with ``masks``
     (V, H, W) bool also both PSNRs inside them (see :func:`~flamerecon.evaluation.masked_scores`)."""
     out = {}
     for k, (img, v) in enumerate(zip(rendered, views)):
-        img, captured = scene.recorded(img), scene.recorded(scene.images[v])
+        img, captured = scene.to_recorded(img), scene.recorded_view(v)
         out[scene.views[v]] = {
             "psnr": psnr(img, captured),
             "ssim": ssim(img, captured),

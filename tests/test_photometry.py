@@ -35,19 +35,21 @@ def test_delinearize_returns_recorded_values_at_or_above_the_black_level(gamma, 
 
 
 def test_scores_are_taken_in_recorded_units(small_scene):
-    """A scene linearized with gamma 2.2 scores a render as the camera would have recorded it:
-    PSNR of render ** (1/2.2) against the recorded image, not of the linear values."""
+    """A scene linearized with gamma 2.2 and a black level scores a render as the camera would
+    have recorded it: PSNR of 0.05 + 0.95 render ** (1/2.2) against the recorded image (not
+    of the linear values, nor of an image rebuilt from them)."""
     from dataclasses import replace
 
     from flamerecon.metrics import psnr
     from flamerecon.pipeline import score_views
 
-    recorded = small_scene.images[:1]
-    scene = replace(small_scene, images=linearize(recorded, 2.2),
-                    meta={**small_scene.meta, "response": {"gamma": 2.2, "black_level": 0.0}})
+    recorded = small_scene.images
+    scene = replace(small_scene, images=linearize(recorded, 2.2, 0.05), recorded_images=recorded,
+                    response={"gamma": 2.2, "black_level": 0.05})
     render = scene.images[:1] * 0.8  # a render 20% too dark in linear units
     got = score_views(render, scene, [0])[scene.views[0]]
-    assert got["psnr"] == pytest.approx(psnr(render[0] ** (1 / 2.2), recorded[0]), abs=1e-4)
+    expected = psnr(0.05 + 0.95 * render[0] ** (1 / 2.2), recorded[0])
+    assert got["psnr"] == pytest.approx(expected, abs=1e-4)
     assert got["psnr"] != pytest.approx(psnr(render[0], scene.images[0]), abs=0.1)
     assert got["psnr_black"] == pytest.approx(psnr(torch.zeros_like(recorded[0]), recorded[0]))
 

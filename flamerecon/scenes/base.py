@@ -28,8 +28,10 @@ class Scene:
     - ``masks``: optional (B, H, W) bool silhouettes when the source provides them;
     - ``truth`` / ``truth_grid``: optional ground-truth density (C, nz, ny, nx) for synthetic scenes;
     - ``source``: where the scene came from (file or generator), for messages;
-    - ``meta``: loader extras; ``meta["response"]`` = {"gamma", "black_level"} when the images
-      were linearized (see :meth:`recorded`).
+    - ``response``: {"gamma", "black_level"} when ``images`` were linearized from
+      ``recorded_images`` (B, C, H, W), the values as the cameras recorded them; scores are
+      taken in those units (:meth:`to_recorded`, :meth:`recorded_view`);
+    - ``meta``: loader extras.
     """
 
     name: str
@@ -44,14 +46,19 @@ class Scene:
     truth_grid: VoxelGrid | None = None
     source: str = ""
     meta: dict = field(default_factory=dict)
+    response: dict | None = None
+    recorded_images: torch.Tensor | None = None
 
-    def recorded(self, images: torch.Tensor) -> torch.Tensor:
-        """Linear images (..., C, H, W), e.g. renders, in the units the cameras recorded (the
-        response curve and black level re-applied), where scores compare with the capture."""
-        response = self.meta.get("response")
-        if not response:
+    def to_recorded(self, images: torch.Tensor) -> torch.Tensor:
+        """Linear images (..., C, H, W), e.g. renders, in the units the cameras record (the
+        response curve and black level re-applied), to be scored against :meth:`recorded_view`."""
+        if self.response is None:
             return images
-        return delinearize(images, response["gamma"], response["black_level"])
+        return delinearize(images, self.response["gamma"], self.response["black_level"])
+
+    def recorded_view(self, v: int) -> torch.Tensor:
+        """View ``v`` (C, H, W) as its camera recorded it."""
+        return self.images[v] if self.recorded_images is None else self.recorded_images[v]
 
     @property
     def num_views(self) -> int:
