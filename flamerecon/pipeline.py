@@ -285,12 +285,12 @@ def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: lis
 
 def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
                 masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
-    """Per view: full-frame PSNR and SSIM against the captured image, and the PSNR of an
-    all-black prediction (the floor that gives a number its meaning); with ``masks``
+    """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against
+    the captured image, and the PSNR of an all-black prediction (the floor that gives a number its meaning); with ``masks``
     (V, H, W) bool also both PSNRs inside them (see :func:`~flamerecon.evaluation.masked_scores`)."""
     out = {}
     for k, (img, v) in enumerate(zip(rendered, views)):
-        captured = scene.images[v]
+        img, captured = scene.to_recorded(img), scene.recorded_view(v)
         out[scene.views[v]] = {
             "psnr": psnr(img, captured),
             "ssim": ssim(img, captured),
@@ -652,7 +652,7 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
     solver_info = {
         "name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
         "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
-        "status": "finished" if stopped is None else "diverged",
+        "status": "finished" if stopped is None else "diverged", "device": str(result.x.device),
     }
     gaps = [h["rel_gap"] for h in result.history if "rel_gap" in h]
     if gaps:
