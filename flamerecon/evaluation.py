@@ -79,7 +79,7 @@ def native_scores(scene_cfg: DictConfig, volume: torch.Tensor, grid: VoxelGrid, 
     rendered = render_support(volume, grid, cams, step)
     out = {}
     for img, v in zip(rendered, views):
-        captured = scene.images[v]
+        img, captured = scene.to_recorded(img), scene.recorded_view(v)
         out[scene.views[v]] = {
             "psnr_native": psnr(img, captured),
             "ssim_native": ssim(img, captured),

@@ -4,7 +4,8 @@ others, and score every held-out view (the scene is loaded once; each split is p
 ``exclude`` drops views from every fit without scoring them, so that settings can be chosen
 by cross-validation over the training views without ever looking at a test view. (``init=``
 warm-starts every fold from the same finished run, which may have seen the held-out view: leave
-it unset when the numbers are to be honest held-out scores.)
+it unset when the numbers are to be honest held-out scores.) ``grid.levels`` are solved anew in
+every fold, on that fold's training views only.
 """
 
 from __future__ import annotations
@@ -17,12 +18,12 @@ from omegaconf import DictConfig, OmegaConf
 from .atomic import write_json_atomic
 from .evaluation import silhouette_union
 from .pipeline import (
-    initial_guess,
     prepare,
     render_views,
     resolve_device,
     score_views,
     solve,
+    warm_start,
     write_renders,
 )
 from .scenes import SceneError, load_scene
@@ -54,7 +55,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
         split = cfg.copy()
         split.holdout = [name, *[e for e in exclude if e != name]]
         setup = prepare(split, scene, device)
-        x0 = initial_guess(cfg.init, setup.grid, setup.voxel_index) if cfg.get("init") else None
+        x0 = warm_start(split, scene, device, setup)  # init= and/or grid.levels
         result, l1, _ = solve(split, setup, x0)
         v = scene.views.index(name)
         image = render_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)

@@ -16,6 +16,12 @@ def srgb_to_linear(values: torch.Tensor) -> torch.Tensor:
     return torch.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
 
 
+def linear_to_srgb(values: torch.Tensor) -> torch.Tensor:
+    """The sRGB transfer curve (IEC 61966-2-1), elementwise on linear values >= 0."""
+    v = values.clamp_min(0.0)
+    return torch.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
+
+
 def linearize(
     images: torch.Tensor, gamma: float | str = 1.0, black_level: float = 0.0
 ) -> torch.Tensor:
@@ -38,6 +44,23 @@ def linearize(
         raise ValueError(f"scene.gamma: must be positive, got {gamma}")
     if float(gamma) != 1.0:
         out = out.clamp_min(0.0) ** float(gamma)
+    return out
+
+
+def delinearize(
+    values: torch.Tensor, gamma: float | str = 1.0, black_level: float = 0.0
+) -> torch.Tensor:
+    """The inverse of :func:`linearize`: linear values (>= 0, may exceed 1) -> recorded units,
+    so a render can be scored against what the camera recorded. The identity for gamma 1 and
+    black level 0; exact on recorded values at or above the black level."""
+    if isinstance(gamma, str):
+        out = linear_to_srgb(values)
+    elif float(gamma) != 1.0:
+        out = values.clamp_min(0.0) ** (1.0 / float(gamma))
+    else:
+        out = values
+    if black_level:
+        out = black_level + (1.0 - black_level) * out
     return out
 
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import logging
 import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +35,7 @@ from .figures import top_view
 from .grid import VoxelGrid
 from .guard import SolveGuard, StopSolve, stop_signals
 from .hull import visual_hull
+from .levels import level_grids, level_iters
 from .metrics import psnr, resample_to, ssim, volume_errors
 from .photometry import apply_gain_offset, fit_gain_offset_rows, normalize_gains
 from .projector import camera_rays, make_operator, render_image
@@ -68,6 +71,7 @@ class Setup:
     pixels: torch.Tensor  # (N, C) training pixel values inside the silhouettes
     step: float
     row_view: torch.Tensor | None = None  # (N,) long: position in ``train`` of each pixel row
+    seconds: float = 0.0  # wall time it took to build (hull, rays, operator)
 
     def volume(self, x: torch.Tensor) -> torch.Tensor:
         """Hull values (M, C) -> dense density (C, nz, ny, nx)."""
@@ -86,10 +90,12 @@ def scene_grid(cfg: DictConfig, scene: Scene) -> VoxelGrid:
         raise ConfigError(f"grid: {err}") from err
 
 
-def prepare(cfg: DictConfig, scene: Scene, device: torch.device) -> Setup:
-    """Split, silhouettes, visual hull, rays and the operator restricted to them."""
+def prepare(cfg: DictConfig, scene: Scene, device: torch.device, grid: VoxelGrid | None = None) -> Setup:
+    """Split, silhouettes, visual hull, rays and the operator restricted to them, on ``grid``
+    (default: the config's, :func:`scene_grid`)."""
+    started = time.perf_counter()
     train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
-    grid = scene_grid(cfg, scene)
+    grid = grid if grid is not None else scene_grid(cfg, scene)
     check_scene(scene, grid)
     budget = memory_budget(device, cfg.projector.get("max_memory_gb"))
     check_grid_memory(grid, scene.num_views, device, budget)
@@ -110,7 +116,8 @@ def prepare(cfg: DictConfig, scene: Scene, device: torch.device) -> Setup:
     step = float(cfg.projector.step)
     backend = choose_backend(cfg.projector.backend, grid, rays, voxel_index, step, device, budget)
     operator = make_operator(backend, grid, rays, voxel_index, step)
-    return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view)
+    return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view,
+                 time.perf_counter() - started)
 
 
 def make_problem(cfg: DictConfig, setup: Setup) -> tuple[Problem, Solver, float]:
@@ -192,17 +199,82 @@ def solve(cfg: DictConfig, setup: Setup, x0: torch.Tensor | None = None
     return result, l1, photometry
 
 
-def initial_guess(path: str | Path, grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
-    """Hull values (M, C) from a finished run's density (warm start, e.g. from the previous
-    frame of a video), averaged onto ``grid`` when its resolution differs."""
+def init_volume(path: str | Path, grid: VoxelGrid) -> torch.Tensor:
+    """The density (C, nz', ny', nx') of a finished run (``init=``), which must cover the box of
+    ``grid`` (its resolution may differ)."""
     saved = load_density(path)
     if not (np.allclose(saved.bbox_min, grid.bbox_min) and np.allclose(saved.bbox_max, grid.bbox_max)):
         raise ConfigError(
             f"init: {path} covers the box {saved.bbox_min.tolist()}-{saved.bbox_max.tolist()}, "
             f"this run's grid {list(grid.bbox_min)}-{list(grid.bbox_max)}; warm start needs the same box"
         )
-    vol = resample_to(torch.from_numpy(saved.density), grid.shape).to(voxel_index.device)
+    return torch.from_numpy(saved.density)
+
+
+def hull_values(volume: torch.Tensor, grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
+    """Hull values (M, C) of a density (C, nz', ny', nx') on the same box as ``grid``: its exact
+    cell averages on ``grid`` (:func:`~flamerecon.metrics.resample_to`) read at ``voxel_index``.
+    A warm start: cells the density is zero on (e.g. outside a coarser level's hull) start at 0."""
+    vol = resample_to(volume, grid.shape).to(voxel_index.device)
     return vol.reshape(vol.shape[0], -1)[:, voxel_index].T.contiguous()
+
+
+def initial_guess(path: str | Path, grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
+    """Hull values (M, C) from a finished run's density (warm start, e.g. from the previous
+    frame of a video), averaged onto ``grid`` when its resolution differs."""
+    return hull_values(init_volume(path, grid), grid, voxel_index)
+
+
+def level_config(cfg: DictConfig, max_iters: int | None, cell_ratio: float) -> DictConfig:
+    """``cfg`` for a coarse level: ``solver.max_iters`` set to its budget (unchanged for None);
+    an absolute ``solver.l1`` (the final grid's) times ``cell_ratio``, the level's cell volume
+    over the final grid's, the weight under which the coarse problem is the final one restricted
+    to densities constant on the coarse cells (``solver.l1_rel`` needs nothing: max(A^T P) of
+    each level scales the same way)."""
+    change: dict = {}
+    if max_iters is not None:
+        change["max_iters"] = max_iters
+    if cfg.solver.get("l1"):
+        change["l1"] = float(cfg.solver.l1) * cell_ratio
+    return OmegaConf.merge(cfg, {"solver": change}) if change else cfg
+
+
+LevelSolve = Callable[[int, DictConfig, Setup, "torch.Tensor | None"], SolveResult]
+
+
+def plain_level_solve(level: int, cfg: DictConfig, setup: Setup, x0: torch.Tensor | None) -> SolveResult:
+    """A coarse level's solve without a run folder (no callback, photometry or checkpoints)."""
+    problem, solver, _ = make_problem(cfg, setup)
+    return solver.solve(problem, x0=x0)
+
+
+def coarse_levels(cfg: DictConfig, scene: Scene, device: torch.device, volume: torch.Tensor | None = None,
+                  first: int = 0, solve_level: LevelSolve = plain_level_solve) -> torch.Tensor | None:
+    """Solve the coarse grids of ``grid.levels`` from ``first`` on, coarsest first, each on its
+    own visual hull and operator (same box, silhouettes and solver config, see
+    :func:`level_config` for its L1 weight and iteration budget), each
+    starting from the previous density resampled onto it (the first from ``volume``, or 0).
+    Returns the last level's density (C, nz, ny, nx), or ``volume`` when there are no levels."""
+    fine = scene_grid(cfg, scene)
+    grids = level_grids(cfg.grid.get("levels"), fine)
+    budgets = level_iters(cfg.grid.get("level_iters"), len(grids))
+    for level in range(first, len(grids)):
+        level_cfg = level_config(cfg, budgets[level], fine.num_voxels / grids[level].num_voxels)
+        setup = prepare(level_cfg, scene, device, grids[level])
+        x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
+        result = solve_level(level, level_cfg, setup, x0)
+        volume = setup.volume(result.x)
+        del setup, result  # free this level's operator before the next is built
+    return volume
+
+
+def warm_start(cfg: DictConfig, scene: Scene, device: torch.device, setup: Setup) -> torch.Tensor | None:
+    """x0 (M, C) for the fine ``setup`` without a run folder: the ``init=`` run's density
+    and/or the solutions of ``grid.levels`` (see :func:`coarse_levels`); None for a cold start."""
+    grids = level_grids(cfg.grid.get("levels"), setup.grid)
+    volume = init_volume(cfg.init, grids[0] if grids else setup.grid) if cfg.get("init") else None
+    volume = coarse_levels(cfg, scene, device, volume)
+    return None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
 
 
 def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
@@ -213,12 +285,12 @@ def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: lis
 
 def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
                 masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
-    """Per view: full-frame PSNR and SSIM against the captured image, and the PSNR of an
-    all-black prediction (the floor that gives a number its meaning); with ``masks``
+    """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against
+    the captured image, and the PSNR of an all-black prediction (the floor that gives a number its meaning); with ``masks``
     (V, H, W) bool also both PSNRs inside them (see :func:`~flamerecon.evaluation.masked_scores`)."""
     out = {}
     for k, (img, v) in enumerate(zip(rendered, views)):
-        captured = scene.images[v]
+        img, captured = scene.to_recorded(img), scene.recorded_view(v)
         out[scene.views[v]] = {
             "psnr": psnr(img, captured),
             "ssim": ssim(img, captured),
@@ -327,17 +399,26 @@ def summary_table(metrics: dict) -> str:
             + (f"; relative duality gap {s['rel_gap']:.1e})" if "rel_gap" in s else ")"))),
         ("seconds", f"{s['seconds']:.2f}"),
     ]
+    if "levels" in s:
+        rows.append(("grid levels", "; ".join(
+            f"{cells_of(r['resolution'])}: {r['iterations']} it, "
+            f"{r['setup_seconds']:.2f} s setup + {r['seconds']:.2f} s solve"
+            for r in s["levels"])))
     width = max(len(r[0]) for r in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
 
 
 class Monitor:
-    """Solver callback: progress bar, TensorBoard scalars, held-out PSNR and pictures."""
+    """Solver callback: progress bar, TensorBoard scalars, held-out PSNR and pictures. Tags
+    start with ``tag_root`` (``""`` for the final grid, ``level<i>/`` for coarse level i)."""
 
-    def __init__(self, setup: Setup, writer: RunWriter, cfg: DictConfig, total: int, device):
+    def __init__(self, setup: Setup, writer: RunWriter, cfg: DictConfig, total: int, device,
+                 tag_root: str = ""):
         self.setup, self.writer, self.cfg = setup, writer, cfg
-        self.bar = tqdm(total=total, desc="solve", unit="it", leave=False, dynamic_ncols=True)
+        desc = "solve" if not tag_root else f"solve {tag_root.rstrip('/')}"
+        self.bar = tqdm(total=total, desc=desc, unit="it", leave=False, dynamic_ncols=True)
         self.device = device
+        self.tag_root = tag_root
         self.last = 0
 
     def __call__(self, it: int, x: torch.Tensor, info: dict) -> None:
@@ -346,7 +427,7 @@ class Monitor:
         self.bar.set_postfix(objective=f"{info['objective']:.4g}", gap=f"{info.get('rel_gap', math.nan):.1e}")
         values = {k: info[k] for k in ("objective", "data", "l1", "smooth", "tv", "rel_gap") if k in info}
         values["nonzero_fraction"] = float((x > 0).any(1).float().mean())
-        self.writer.scalars(it, values)
+        self.writer.scalars(it, values, prefix=f"{self.tag_root}solve")
         every = int(self.cfg.log.eval_every)
         if every > 0 and it % every == 0:
             self.pictures(it, x)
@@ -360,12 +441,13 @@ class Monitor:
     def log_pictures(self, it: int, vol: torch.Tensor, imgs: torch.Tensor) -> None:
         """Held-out PSNR, held-out renders imgs (V, C, H, W) beside the captured views, and the
         top view of vol (C, nz, ny, nx), at step ``it``."""
-        s = self.setup
+        s, root = self.setup, self.tag_root
         scores = score_views(imgs, s.scene, s.holdout)
-        self.writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix="eval")
+        self.writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix=f"{root}eval")
         for img, v in zip(imgs, s.holdout):
-            self.writer.image(f"heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
-        self.writer.image("density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
+            self.writer.image(f"{root}heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
+        self.writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max),
+                          it, "HWC")
 
     def close(self) -> None:
         self.bar.close()
@@ -381,9 +463,13 @@ def solver_options(cfg: DictConfig) -> dict:
 def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
     """Run the whole pipeline for ``cfg`` and write the run folder; returns metrics.json's dict.
 
-    With ``resume`` the solve continues from ``run_dir/checkpoint.pt``. Raises
+    With ``grid.levels`` the coarse grids are solved first (:func:`coarse_levels`), each logged
+    to TensorBoard under the tag prefix ``level<i>/`` and recorded in metrics.json's
+    ``solver.levels``; the final grid logs under the usual tags. With ``resume`` the solve
+    continues from ``run_dir/checkpoint.pt``, at the level it was written on. Raises
     :class:`~flamerecon.errors.Interrupted` after checkpointing on SIGINT/SIGTERM, and
-    :class:`~flamerecon.errors.SolveDiverged` after writing the last good iterate's outputs.
+    :class:`~flamerecon.errors.SolveDiverged` after writing the last good iterate's outputs
+    (a coarse level that diverges writes none).
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -395,48 +481,64 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
         raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
     ckpt = load_checkpoint(run_dir) if resume else None
     scene = load_scene(cfg.scene)
-    setup = prepare(cfg, scene, device)
-    problem, solver, l1 = make_problem(cfg, setup)
-    meta = {"solver": cfg.solver.name, "shape": list(setup.operator.shape),
-            "channels": int(setup.pixels.shape[1]), "l1": l1}
-    x0, start, seconds_before = None, 0, 0.0
-    if ckpt is not None:
-        x0, start, seconds_before = resume_solver(run_dir, ckpt, solver, meta)
-    elif cfg.get("init"):
-        x0 = initial_guess(cfg.init, setup.grid, setup.voxel_index)
-    start_x = x0 if x0 is not None else setup.pixels.new_zeros(problem.A.shape[1], problem.b.shape[1])
-    start_objective = float(problem.objective(setup.pixels.new_zeros(start_x.shape)))
+    fine = scene_grid(cfg, scene)
+    grids = level_grids(cfg.grid.get("levels"), fine)
+    level_iters(cfg.grid.get("level_iters"), len(grids))  # refuse a bad budget before any solve
+    plan = [list(g.resolution) for g in grids]
+    final = len(grids)
+    # a checkpoint without "level" predates grid.levels: it is the final grid's
+    at = final if ckpt is None else int(ckpt["meta"].get("level", final))
+    records: list[dict] = [] if ckpt is None else list(ckpt["meta"].get("level_records", []))
+    if ckpt is not None and ckpt["meta"].get("levels", plan) != plan:
+        raise ResumeError(
+            f"{run_dir / CHECKPOINT_FILE}: field 'levels' is {ckpt['meta']['levels']} but the run's config "
+            f"now gives grid.levels as {plan}; resume with the grid.levels it was started with"
+        )
+    volume = None
+    if ckpt is None and cfg.get("init"):
+        volume = init_volume(cfg.init, grids[0] if grids else fine)
+
+    def solve_level(level: int, level_cfg: DictConfig, setup: Setup, x0: torch.Tensor | None) -> SolveResult:
+        """Coarse level ``level`` under the watchdog, resumed when the checkpoint is its own."""
+        problem, solver, l1 = make_problem(level_cfg, setup)
+        meta = problem_meta(level_cfg, setup, l1, level, plan)
+        here = ckpt if ckpt is not None and level == at else None
+        if here is None and x0 is not None:  # TensorBoard shows where the warm start begins
+            writer.scalars(0, {"objective": problem.objective(x0)}, prefix=f"level{level}/solve")
+        result, stopped, _ = guarded_solve(level_cfg, run_dir, setup, problem, solver, writer, device,
+                                           meta, x0, here, level, {"level_records": records})
+        if stopped is not None:
+            raise SolveDiverged(
+                f"{run_dir}: the solve on coarse level grid.levels[{level}] ({cells(setup.grid)} cells) "
+                f"{stopped}; nothing was written; try a smaller step (solver.lr), another solver, "
+                "or other grid.levels"
+            )
+        records.append(level_record(setup, l1, result))
+        return result
+
     writer = RunWriter(str(run_dir))
-    monitor = Monitor(setup, writer, cfg, int(cfg.solver.get("max_iters", 0)), device)
-    monitor.last = start
-    ck = cfg.get("checkpoint") or {}
-    guard = SolveGuard(solver, monitor, run_dir, int(ck.get("every", 0)),
-                       float(ck.get("divergence_factor", 0.0)), start_objective, meta,
-                       (start, start_x), seconds_before)
-    stopped: StopSolve | None = None
     try:
-        with stop_signals() as signals:
-            guard.signals = signals
-            try:
-                result = solver.solve(problem, x0=x0, callback=guard)
-                result.seconds = guard.seconds()
-            except StopSolve as stop:
-                if stop.reason == "interrupted":
-                    raise Interrupted(
-                        f"{run_dir}: {stop.detail} at iteration {stop.iteration}; the state is saved in "
-                        f"{CHECKPOINT_FILE}; continue with: python train.py resume={run_dir}"
-                    ) from None
-                stopped = stop
-                it, x = guard.last_good
-                log.error("solve %s; keeping the last good iterate (iteration %d)", stop, it)
-                result = SolveResult(x, it, guard.seconds(), problem.objective(x), False)
+        volume = coarse_levels(cfg, scene, device, volume, 0 if ckpt is None else at, solve_level)
+        setup = prepare(cfg, scene, device, fine)
+        problem, solver, l1 = make_problem(cfg, setup)
+        meta = problem_meta(cfg, setup, l1, final, plan)
+        here = ckpt if ckpt is not None and at == final else None
+        x0 = None
+        if here is None and volume is not None:
+            x0 = hull_values(volume, setup.grid, setup.voxel_index)
+            if grids:  # TensorBoard shows where the coarse levels left the fine problem
+                writer.scalars(0, {"objective": problem.objective(x0)})
+        del volume
+        result, stopped, monitor = guarded_solve(cfg, run_dir, setup, problem, solver, writer, device,
+                                                 meta, x0, here, final, {"level_records": records})
         photometry = None
         if stopped is None:
             result, photometry = fit_photometry(cfg, setup, problem, solver, result)
+        if grids:
+            records.append(level_record(setup, l1, result))
         metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped,
-                                photometry)
+                                photometry, records)
     finally:
-        monitor.close()
         writer.close()
     if stopped is not None:
         raise SolveDiverged(
@@ -448,6 +550,76 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
     if formats:
         export_run(run_dir, list(formats))
     return metrics
+
+
+def cells_of(resolution) -> str:
+    """``nx x ny x nz`` of a resolution (nx, ny, nz), for messages."""
+    return "x".join(str(n) for n in resolution)
+
+
+def cells(grid: VoxelGrid) -> str:
+    """``nx x ny x nz`` of a grid, for messages."""
+    return cells_of(grid.resolution)
+
+
+def problem_meta(cfg: DictConfig, setup: Setup, l1: float, level: int, plan: list[list[int]]) -> dict:
+    """What identifies a solve for resuming: solver, operator shape, channels, absolute l1,
+    the grid level (``len(plan)``: the final grid) and the coarse grids of ``grid.levels``."""
+    return {"solver": cfg.solver.name, "shape": list(setup.operator.shape),
+            "channels": int(setup.pixels.shape[1]), "l1": l1, "level": level, "levels": plan}
+
+
+def level_record(setup: Setup, l1: float, result: SolveResult) -> dict:
+    """One grid level's entry in metrics.json's ``solver.levels``."""
+    return {"resolution": list(setup.grid.resolution), "voxels": int(setup.voxel_index.numel()),
+            "l1": l1, "iterations": result.iterations, "seconds": result.seconds,
+            "setup_seconds": setup.seconds, "objective": result.objective,
+            "converged": result.converged}
+
+
+def guarded_solve(cfg: DictConfig, run_dir: Path, setup: Setup, problem: Problem, solver: Solver,
+                  writer: RunWriter, device: torch.device, meta: dict, x0: torch.Tensor | None,
+                  ckpt: dict | None, level: int, extra: dict
+                  ) -> tuple[SolveResult, StopSolve | None, Monitor]:
+    """Solve ``problem`` under the run's watchdog (:class:`~flamerecon.guard.SolveGuard`):
+    TensorBoard monitor (tags under ``level<level>/`` for a coarse level), checkpoints holding
+    ``meta`` and ``extra``, stop on divergence, :class:`~flamerecon.errors.Interrupted` after a
+    checkpoint on SIGINT/SIGTERM. With ``ckpt`` it continues from that checkpoint instead of
+    ``x0``. Returns (result, the divergence stop or None, the monitor)."""
+    final = level == len(meta["levels"])
+    start, seconds_before = 0, 0.0
+    if ckpt is not None:
+        x0, start, seconds_before = resume_solver(run_dir, ckpt, solver, meta)
+    start_x = x0 if x0 is not None else setup.pixels.new_zeros(problem.A.shape[1], problem.b.shape[1])
+    start_objective = float(problem.objective(setup.pixels.new_zeros(start_x.shape)))
+    monitor = Monitor(setup, writer, cfg, int(cfg.solver.get("max_iters") or 0), device,
+                      "" if final else f"level{level}/")
+    monitor.last = start
+    ck = cfg.get("checkpoint") or {}
+    guard = SolveGuard(solver, monitor, run_dir, int(ck.get("every", 0)),
+                       float(ck.get("divergence_factor", 0.0)), start_objective, {**meta, **extra},
+                       (start, start_x), seconds_before)
+    stopped: StopSolve | None = None
+    try:
+        with stop_signals() as signals:
+            guard.signals = signals
+            try:
+                result = solver.solve(problem, x0=x0, callback=guard)
+                result.seconds = guard.seconds()
+            except StopSolve as stop:
+                if stop.reason == "interrupted":
+                    where = "" if final else f" of coarse level grid.levels[{level}] ({cells(setup.grid)} cells)"
+                    raise Interrupted(
+                        f"{run_dir}: {stop.detail} at iteration {stop.iteration}{where}; the state is saved "
+                        f"in {CHECKPOINT_FILE}; continue with: python train.py resume={run_dir}"
+                    ) from None
+                stopped = stop
+                it, x = guard.last_good
+                log.error("solve %s; keeping the last good iterate (iteration %d)", stop, it)
+                result = SolveResult(x, it, guard.seconds(), problem.objective(x), False)
+    finally:
+        monitor.close()
+    return result, stopped, monitor
 
 
 def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.Tensor, int, float]:
@@ -473,19 +645,22 @@ def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.
 
 def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, writer: RunWriter,
                   monitor: Monitor, result: SolveResult, l1: float, stopped: StopSolve | None,
-                  photometry: Photometry | None = None) -> dict:
-    """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries."""
+                  photometry: Photometry | None = None, levels: list[dict] | None = None) -> dict:
+    """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries;
+    ``levels``: one :func:`level_record` per grid, coarsest first (only with ``grid.levels``)."""
     volume = setup.volume(result.x)
     solver_info = {
         "name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
         "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
-        "status": "finished" if stopped is None else "diverged",
+        "status": "finished" if stopped is None else "diverged", "device": str(result.x.device),
     }
     gaps = [h["rel_gap"] for h in result.history if "rel_gap" in h]
     if gaps:
         solver_info["rel_gap"] = gaps[-1]
     if stopped is not None:
         solver_info["stopped"] = {"iteration": stopped.iteration, "reason": stopped.detail}
+    if levels:
+        solver_info["levels"] = levels
     per_view = None
     if photometry is not None:
         solver_info["photometry"] = {"rounds": len(photometry.iterations), "iterations": photometry.iterations}
@@ -503,7 +678,9 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
                                                   setup.grid.bbox_max), 0, "HWC")
     writer.hparams(
         {"scene": cfg.scene.name, "solver": cfg.solver.name, "l1": l1,
-         "grid": str(setup.grid.resolution), "holdout": ",".join(scene.views[i] for i in setup.holdout),
+         "grid": str(setup.grid.resolution),
+         "grid_levels": str(list(cfg.grid.get("levels") or [])),
+         "holdout": ",".join(scene.views[i] for i in setup.holdout),
          **{k: float(cfg.solver[k]) for k in ("smooth", "tv") if cfg.solver.get(k) is not None}},
         flat_metrics(metrics),
     )

@@ -1,7 +1,10 @@
 """An assembled linear operator: A (N, M) as a torch CSR matrix with int32 indices, plus A^T.
 
 Keeping A^T as its own CSR makes the adjoint a row-parallel product as fast as the forward
-one, at the cost of storing the values twice.
+one, at the cost of storing the values twice. On CUDA a product with C columns runs as C
+sparse matrix-vector products: cuSPARSE's SpMM with three row-major columns measured 3-4.5x
+slower than three SpMVs on an H100 (0.43 vs 0.14 ms at 9.2 M nonzeros); on the CPU the
+one SpMM is the faster (MKL reads A once for all columns).
 """
 
 from __future__ import annotations
@@ -18,17 +21,24 @@ def _csr32(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> t
     return torch.sparse_csr_tensor(crow.to(torch.int32), col.to(torch.int32), val, size=shape)
 
 
+def csr_matmul(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """A (R, K) CSR times dense x (K, C) -> (R, C), by the faster kernel for the device."""
+    if x.is_cuda and x.shape[1] > 1:
+        return torch.stack([torch.mv(A, column) for column in x.t().contiguous()], 1)
+    return A @ x
+
+
 class _CsrMatmul(torch.autograd.Function):
     """y = A x with dL/dx = A^T dL/dy, using the stored transpose (no transpose at run time)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, A: torch.Tensor, AT: torch.Tensor) -> torch.Tensor:
         ctx.AT = AT
-        return A @ x
+        return csr_matmul(A, x)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        return ctx.AT @ grad_out.contiguous(), None, None
+        return csr_matmul(ctx.AT, grad_out.contiguous()), None, None
 
 
 class CsrOperator:
@@ -79,10 +89,10 @@ class CsrOperator:
         """A x for x (M, C) -> (N, C); differentiable in ``x`` (the backward is A^T)."""
         if x.requires_grad and torch.is_grad_enabled():
             return _CsrMatmul.apply(x, self.A, self.AT)
-        return self.A @ x
+        return csr_matmul(self.A, x)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        return self.AT @ y
+        return csr_matmul(self.AT, y)
 
     def to(self, device) -> CsrOperator:
         return CsrOperator(self.A.to(device), self.AT.to(device))

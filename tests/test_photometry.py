@@ -7,6 +7,7 @@ import torch
 
 from flamerecon.photometry import (
     apply_gain_offset,
+    delinearize,
     fit_gain_offset,
     fit_gain_offset_rows,
     linearize,
@@ -24,6 +25,33 @@ def test_linearize_black_level_and_gamma():
     assert linearize(v) is v  # identity by default
     torch.testing.assert_close(linearize(v, gamma="srgb"), srgb_to_linear(v))
     assert float(srgb_to_linear(torch.tensor(0.5))) == pytest.approx(0.21404, abs=1e-4)
+
+
+@pytest.mark.parametrize("gamma, black", [(2.2, 0.0), ("srgb", 0.0), (1.0, 0.1), (2.0, 0.05)])
+def test_delinearize_returns_recorded_values_at_or_above_the_black_level(gamma, black):
+    recorded = torch.linspace(black, 1.0, 41).reshape(1, 1, 1, 41)
+    back = delinearize(linearize(recorded, gamma, black), gamma, black)
+    torch.testing.assert_close(back, recorded, atol=1e-6, rtol=0)
+
+
+def test_scores_are_taken_in_recorded_units(small_scene):
+    """A scene linearized with gamma 2.2 and a black level scores a render as the camera would
+    have recorded it: PSNR of 0.05 + 0.95 render ** (1/2.2) against the recorded image (not
+    of the linear values, nor of an image rebuilt from them)."""
+    from dataclasses import replace
+
+    from flamerecon.metrics import psnr
+    from flamerecon.pipeline import score_views
+
+    recorded = small_scene.images
+    scene = replace(small_scene, images=linearize(recorded, 2.2, 0.05), recorded_images=recorded,
+                    response={"gamma": 2.2, "black_level": 0.05})
+    render = scene.images[:1] * 0.8  # a render 20% too dark in linear units
+    got = score_views(render, scene, [0])[scene.views[0]]
+    expected = psnr(0.05 + 0.95 * render[0] ** (1 / 2.2), recorded[0])
+    assert got["psnr"] == pytest.approx(expected, abs=1e-4)
+    assert got["psnr"] != pytest.approx(psnr(render[0], scene.images[0]), abs=0.1)
+    assert got["psnr_black"] == pytest.approx(psnr(torch.zeros_like(recorded[0]), recorded[0]))
 
 
 @pytest.mark.parametrize("gamma, black", [(0.0, 0.0), ("log", 0.0), (1.0, 1.0)])

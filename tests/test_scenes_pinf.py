@@ -90,6 +90,17 @@ def test_round_trip(tmp_path, videos):
     np.testing.assert_allclose(scene.bbox_max, BOX[1], atol=1e-6)
 
 
+def test_a_response_keeps_the_recorded_images_for_scoring(tmp_path):
+    images = random_images(len(NAMES))
+    write_capture(tmp_path, images)
+    plain = load_pinf({"root": str(tmp_path), "frame": FRAME})
+    assert plain.response is None and plain.recorded_images is None
+    scene = load_pinf({"root": str(tmp_path), "frame": FRAME, "gamma": 2.2, "black_level": 0.1})
+    assert scene.response == {"gamma": 2.2, "black_level": 0.1}
+    torch.testing.assert_close(scene.recorded_view(0), plain.images[0])
+    torch.testing.assert_close(scene.images, ((plain.images - 0.1) / 0.9).clamp_min(0) ** 2.2)
+
+
 def test_downscale_averages_pixels_and_scales_intrinsics(tmp_path):
     images = random_images(len(NAMES))
     write_capture(tmp_path, images)

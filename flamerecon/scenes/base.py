@@ -9,6 +9,7 @@ from kornia.geometry.camera import PinholeCamera
 
 from ..errors import FlameReconError
 from ..grid import VoxelGrid
+from ..photometry import delinearize
 
 
 class SceneError(FlameReconError, ValueError):
@@ -26,7 +27,11 @@ class Scene:
     - ``default_holdout``: view names held out when the config does not say;
     - ``masks``: optional (B, H, W) bool silhouettes when the source provides them;
     - ``truth`` / ``truth_grid``: optional ground-truth density (C, nz, ny, nx) for synthetic scenes;
-    - ``source``: where the scene came from (file or generator), for messages.
+    - ``source``: where the scene came from (file or generator), for messages;
+    - ``response``: {"gamma", "black_level"} when ``images`` were linearized from
+      ``recorded_images`` (B, C, H, W), the values as the cameras recorded them; scores are
+      taken in those units (:meth:`to_recorded`, :meth:`recorded_view`);
+    - ``meta``: loader extras.
     """
 
     name: str
@@ -41,6 +46,19 @@ class Scene:
     truth_grid: VoxelGrid | None = None
     source: str = ""
     meta: dict = field(default_factory=dict)
+    response: dict | None = None
+    recorded_images: torch.Tensor | None = None
+
+    def to_recorded(self, images: torch.Tensor) -> torch.Tensor:
+        """Linear images (..., C, H, W), e.g. renders, in the units the cameras record (the
+        response curve and black level re-applied), to be scored against :meth:`recorded_view`."""
+        if self.response is None:
+            return images
+        return delinearize(images, self.response["gamma"], self.response["black_level"])
+
+    def recorded_view(self, v: int) -> torch.Tensor:
+        """View ``v`` (C, H, W) as its camera recorded it."""
+        return self.images[v] if self.recorded_images is None else self.recorded_images[v]
 
     @property
     def num_views(self) -> int:

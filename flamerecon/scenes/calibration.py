@@ -232,7 +232,7 @@ def build_views(
 
     ``images``: per view (H, W, C) float32 in [0, 1] at native size; ``Ks``: per view 3x3 with
     pixel centres at +0.5; ``w2cs``: per view OpenCV world->camera 4x4. Returns
-    (cameras, images (B, C, H, W)).
+    (cameras, linear images (B, C, H, W), the recorded images or None when they are the same).
     """
     factor = downscale_factor(cfg)
     small, Ks_small = [], []
@@ -241,9 +241,9 @@ def build_views(
         small.append(s)
         Ks_small.append(k)
     small = to_channels(small, option(cfg, "channels", "auto"))
-    batch = stack_views(small, sources)
+    recorded = stack_views(small, sources)
     try:
-        batch = linearize(batch, option(cfg, "gamma", 1.0), float(option(cfg, "black_level", 0.0)))
+        batch = linearize(recorded, option(cfg, "gamma", 1.0), float(option(cfg, "black_level", 0.0)))
     except ValueError as err:
         raise SceneError(f"config: {err}") from None
     H, W = batch.shape[-2:]
@@ -253,7 +253,7 @@ def build_views(
         torch.full((len(names),), H),
         torch.full((len(names),), W),
     )
-    return cams, batch
+    return cams, batch, (None if batch is recorded else recorded)
 
 
 def box_from_config(cfg, field: str = "scene.bbox"):
@@ -327,7 +327,7 @@ def make_scene(
 ) -> Scene:
     """The Scene every loader returns: views stacked and checked, the box chosen (config,
     file, or silhouettes), ``holdout`` checked against the view names."""
-    cams, batch = build_views(cfg, names, images, Ks, w2cs, sources)
+    cams, batch, recorded = build_views(cfg, names, images, Ks, w2cs, sources)
     lo, hi, box_source = choose_box(cfg, file_box, cams, batch, path)
     unknown = [h for h in holdout if h not in names]
     if unknown:
@@ -337,4 +337,7 @@ def make_scene(
         bbox_min=lo, bbox_max=hi, default_holdout=list(holdout), source=str(path),
         meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source),
               **meta},
+        response=None if recorded is None else {
+            "gamma": option(cfg, "gamma", 1.0), "black_level": float(option(cfg, "black_level", 0.0))},
+        recorded_images=recorded,
     )

@@ -43,14 +43,16 @@ class Fista(Solver):
             L, t, start = resume["L"], resume["t"], resume["iteration"] + 1
             y, history = resume["y"].to(x), list(resume["history"])
         step = 1.0 / max(L, 1e-30)
+        # the momentum t lives on the device, so an iteration never waits for the GPU
+        t = torch.tensor(float(t), dtype=torch.float64, device=x.device)
         converged, it = False, start - 1
         for it in range(start, self.max_iters + 1):
             grad_y = A.adjoint(A.forward(y) - b)
             x_new = (y - step * (grad_y + lam)).clamp_min_(0)
-            if self.restart and float(((y - x_new) * (x_new - x)).sum()) > 0:
-                t = 1.0  # momentum points uphill: restart
-            t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t) ** 0.5)
-            y = x_new + ((t - 1.0) / t_new) * (x_new - x)
+            if self.restart:  # momentum points uphill: restart
+                t = torch.where(((y - x_new) * (x_new - x)).sum() > 0, 1.0, t)
+            t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t).sqrt())
+            y = x_new + ((t - 1.0) / t_new).to(x.dtype) * (x_new - x)
             x, t = x_new, t_new
             if it % self.check_every == 0 or it == self.max_iters:
                 r = A.forward(x) - b
@@ -65,7 +67,8 @@ class Fista(Solver):
                 entry = {"iteration": it, **info}
                 history.append(entry)
                 if callback is not None:
-                    self._state = {"iteration": it, "x": x, "y": y, "t": t, "L": L, "history": history}
+                    self._state = {"iteration": it, "x": x, "y": y, "t": float(t), "L": L,
+                                   "history": history}
                     callback(it, x, info)
                     entry.update(info)  # a callback may add entries (fista_smooth splits the data)
                 if info["rel_gap"] < self.tol:
