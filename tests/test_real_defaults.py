@@ -18,19 +18,19 @@ def composed(*overrides: str):
 def test_scalarflow_picks_its_cross_validated_solver_grid_and_resolution():
     cfg = composed("scene=scalarflow")
     assert cfg.scene.name == "scalarflow" and cfg.scene.downscale == 4
-    assert cfg.solver.name == "fista_smooth"
-    assert (cfg.solver.smooth, cfg.solver.l1_rel, cfg.solver.l1) == (0.3, 0.05, None)
+    assert cfg.solver.name == "tv"
+    assert (cfg.solver.tv, cfg.solver.l1_rel, cfg.solver.l1) == (0.03, 0.05, None)
     assert cfg.grid.resolution == 96
     make_solver(cfg.solver.name, **solver_options(cfg))  # a complete, valid solver config
 
 
 def test_the_command_line_wins_over_the_scene_defaults():
     cfg = composed("scene=scalarflow", "solver=fista", "grid.resolution=96", "solver.max_iters=7")
-    assert cfg.solver.name == "fista" and "smooth" not in cfg.solver
+    assert cfg.solver.name == "fista" and "tv" not in cfg.solver
     assert cfg.grid.resolution == 96 and cfg.solver.max_iters == 7
     make_solver(cfg.solver.name, **solver_options(cfg))
-    cfg = composed("scene=scalarflow", "solver.smooth=0.3", "scene.downscale=2")
-    assert (cfg.solver.name, cfg.solver.smooth, cfg.scene.downscale) == ("fista_smooth", 0.3, 2)
+    cfg = composed("scene=scalarflow", "solver.tv=0.1", "scene.downscale=2")
+    assert (cfg.solver.name, cfg.solver.tv, cfg.scene.downscale) == ("tv", 0.1, 2)
 
 
 def test_the_synthetic_defaults_are_unchanged():
