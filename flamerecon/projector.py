@@ -181,6 +181,16 @@ def trilinear_weights(
     return idx, w
 
 
+def cells_touching(grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
+    """(nz+1, ny+1, nx+1) bool: entry [k+1, j+1, i+1] says whether the trilinear cell with lower
+    corner (i, j, k), i in -1..nx-1, has one of ``voxel_index``'s voxels among its 8 corners."""
+    nx, ny, nz = grid.resolution
+    occupied = torch.zeros(grid.num_voxels, device=voxel_index.device)
+    occupied[voxel_index] = 1.0
+    padded = F.pad(occupied.view(1, 1, nz, ny, nx), (1, 1, 1, 1, 1, 1))
+    return F.max_pool3d(padded, 2, stride=1)[0, 0] > 0
+
+
 def assemble(
     grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5
 ) -> CsrOperator:
@@ -193,10 +203,16 @@ def assemble(
     column[voxel_index.to(device)] = torch.arange(voxel_index.numel(), device=device)
     M = int(voxel_index.numel())
     box = support_box(grid, voxel_index.to(device))
+    live = cells_touching(grid, voxel_index.to(device))
+    top = torch.tensor(live.shape[::-1], device=device) - 1  # (nx, ny, nz)
     rows_all, cols_all, vals_all = [], [], []
     for sl, chunk in _chunks(rays, grid, step):
         points, length = ray_samples(chunk, grid, step, box)
         valid = length > 0
+        # keep only samples whose trilinear cell touches the hull (most of the support box
+        # does not): the 8-corner work below is then done for samples that contribute
+        cell = (torch.floor(grid.world_to_index(points)).long() + 1).clamp_min_(0).minimum(top)
+        valid &= live[cell[..., 2], cell[..., 1], cell[..., 0]]
         row = torch.arange(sl.start, sl.start + len(chunk), device=device)[:, None].expand_as(length)[valid]
         idx, w = trilinear_weights(points[valid], length[valid], grid)
         col = column[idx]

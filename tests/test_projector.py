@@ -22,6 +22,7 @@ from flamerecon.projector import (
     Rays,
     assemble,
     camera_rays,
+    cells_touching,
     integrate_dense,
     make_operator,
     march_box,
@@ -171,6 +172,18 @@ def test_assembled_and_matrix_free_agree_forward_and_adjoint(box_grid):
     aa, am = ops["assembled"].adjoint(y), ops["matrix_free"].adjoint(y)
     assert (fa - fm).abs().max() <= 1e-5 * fa.abs().max()
     assert (aa - am).abs().max() <= 1e-5 * aa.abs().max()
+
+
+def test_the_cells_touching_one_voxel_are_the_eight_around_it(box_grid):
+    nx, ny, nz = box_grid.resolution
+    i, j, k = 3, 0, 5  # on the grid's y = 0 face
+    live = cells_touching(box_grid, torch.tensor([(k * ny + j) * nx + i]))
+    assert live.shape == (nz + 1, ny + 1, nx + 1)
+    # cell [k+1, j+1, i+1] has lower corner (i, j, k): the voxel is a corner of the cells with
+    # lower corners i-1..i, j-1..j, k-1..k, i.e. entries i..i+1, j..j+1, k..k+1
+    expected = torch.zeros_like(live)
+    expected[k:k + 2, j:j + 2, i:i + 2] = True
+    assert torch.equal(live, expected)
 
 
 def test_column_m_of_the_operator_is_grid_voxel_voxel_index_m(box_grid):
