@@ -219,7 +219,7 @@ def assemble(
         keep = (col >= 0) & (w > 0)
         key = ((row[:, None] - sl.start) * M + col)[keep]
         # merge duplicates (neighbouring samples share corners) within the chunk
-        key, order = torch.sort(key)
+        key, order = torch.sort(key, stable=True)  # duplicates summed in ray order: reproducible
         key, counts = torch.unique_consecutive(key, return_counts=True)
         seg = torch.repeat_interleave(torch.arange(key.numel(), device=device), counts)
         val = torch.zeros(key.numel(), dtype=w.dtype, device=device).index_add_(0, seg, w[keep][order])

@@ -7,6 +7,7 @@ whole suite runs in about a minute on two busy CPU cores.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,12 @@ from flamerecon.grid import VoxelGrid
 from flamerecon.projector import Rays
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def repo_env() -> dict[str, str]:
+    """The environment for a subprocess that imports flamerecon from this checkout: the repo
+    put in front of PYTHONPATH (kept, where the packages may come from)."""
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p))
 
 #: the small synthetic scene the hull and synthetic tests share (keys of scenes/synthetic.py).
 SMALL_SCENE = {

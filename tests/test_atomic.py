@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import repo_env
 
 from flamerecon.atomic import (
     atomic_path,
@@ -44,7 +45,7 @@ _CHILD = textwrap.dedent(
 
 
 def _start_child(dest: Path) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = repo_env()
     proc = subprocess.Popen(
         [sys.executable, "-c", _CHILD, str(dest)], stdout=subprocess.PIPE, text=True, env=env
     )

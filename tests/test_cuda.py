@@ -7,13 +7,12 @@ Skipped where torch sees no CUDA device (CI has none); run on a GPU machine with
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 
 import pytest
 import torch
-from conftest import REPO, random_rays
+from conftest import REPO, random_rays, repo_env
 from test_pipeline import TINY
 from test_projector import dot, random_hull
 from test_solvers import csr, tiny_problem
@@ -61,8 +60,7 @@ def test_train_py_on_cuda_scores_like_the_cpu_run(tmp_path):
         args = [*[a for a in TINY if not a.startswith("device=")], f"device={device}",
                 f"hydra.run.dir={run_dir}"]
         subprocess.run([sys.executable, "train.py", *args], cwd=REPO, check=True,
-                       env=dict(os.environ, PYTHONPATH=os.pathsep.join(
-                           [str(REPO), os.environ.get("PYTHONPATH", "")])), capture_output=True)
+                       env=repo_env(), capture_output=True)
         metrics = json.loads((run_dir / "metrics.json").read_text())
         assert metrics["solver"]["device"].startswith(device)
         scores[device] = metrics["heldout"]["cam04"]

@@ -3,13 +3,13 @@ and says what to try; train.py prints it on one line and exits with status 2."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 import torch
+from conftest import repo_env
 from hydra.errors import ConfigCompositionException, MissingConfigException
 from omegaconf import OmegaConf
 
@@ -136,7 +136,7 @@ def test_debug_shows_the_exception_instead_of_exiting(tmp_path):
 
 
 def test_train_py_prints_one_line_and_exits_2(tmp_path):
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = repo_env()
     proc = subprocess.run(
         [sys.executable, str(REPO / "train.py"), *TINY, "holdout=[cam99]", f"hydra.run.dir={tmp_path}"],
         capture_output=True, text=True, env=env, timeout=300, check=False,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -13,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import repo_env
 
 from flamerecon.export import (
     DensityFileError,
@@ -43,7 +43,7 @@ def _volume(num_channels: int, shape=(5, 4, 3), seed=0) -> np.ndarray:
 
 
 def _run_script(name: str, *args) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = repo_env()
     return subprocess.run([sys.executable, str(REPO / "scripts" / name), *map(str, args)],
                           check=False, capture_output=True, text=True, env=env)
 

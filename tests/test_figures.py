@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from conftest import repo_env
 
 from flamerecon.cameras import camera_centers, project_points
 from flamerecon.export import save_density
@@ -227,7 +227,7 @@ def test_support_box_and_empty_volume():
 
 
 def _run_render(*args) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = repo_env()
     return subprocess.run([sys.executable, str(REPO / "scripts" / "render.py"), *map(str, args)],
                           check=False, capture_output=True, text=True, env=env)
 

@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
+
+from conftest import repo_env
 
 from flamerecon.runner import FAILED_FILE
 from tests.tiny_scene import REPO, TINY
 
 
 def test_failed_job_does_not_stop_the_sweep(tmp_path):
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = repo_env()
     proc = subprocess.run(
         [sys.executable, str(REPO / "train.py"), "--multirun", *TINY, "solver.max_iters=5",
          "holdout=[cam99],[cam01]", f"hydra.sweep.dir={tmp_path}"],

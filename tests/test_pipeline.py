@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import runpy
 import subprocess
 import sys
@@ -14,7 +13,7 @@ import sys
 import cv2
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, repo_env
 from hydra import compose, initialize_config_dir
 from tensorboard.backend.event_processing import event_accumulator as ea
 
@@ -45,7 +44,7 @@ class CliRun:
 
     def __init__(self, run_dir, *overrides: str):
         self.run_dir = run_dir
-        env = dict(os.environ, PYTHONPATH=str(REPO))
+        env = repo_env()
         self.args = [sys.executable, "train.py", *TINY, *overrides, f"hydra.run.dir={run_dir}"]
         self.proc = subprocess.Popen(self.args, cwd=REPO, env=env, stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True)

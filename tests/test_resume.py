@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import repo_env
 from omegaconf import OmegaConf
 
 from flamerecon import pipeline
@@ -56,7 +57,7 @@ def _density(run: Path) -> np.ndarray:
 def test_sigint_then_resume_matches_uninterrupted_run(tmp_path):
     overrides = ["solver=fista", "solver.max_iters=100", "solver.check_every=5"]
     run = tmp_path / "run"
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = repo_env()
     child = subprocess.Popen(
         [sys.executable, "-c", _CHILD, str(REPO / "train.py"), *TINY, *SOLVE, *overrides,
          f"hydra.run.dir={run}"],

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -13,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import repo_env
 
 from flamerecon.export import save_density
 from flamerecon.sequence import SweepError, assemble_sweep, find_frame_runs, flatten_metrics
@@ -61,7 +61,7 @@ def test_assemble_script_on_three_frames(tmp_path):
     (sweep / "multirun.yaml").write_text("hydra: {}\n")
     proc = subprocess.run(
         [sys.executable, str(REPO / "scripts" / "assemble.py"), str(sweep)], check=False,
-        capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)),
+        capture_output=True, text=True, env=repo_env(),
     )
     assert proc.returncode == 0, proc.stderr
 
@@ -174,7 +174,7 @@ def test_joblib_multirun_then_assemble(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     (tmp_path / "app.py").write_text(_APP)
     sweep = tmp_path / "sweep"
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = repo_env()
     proc = subprocess.run(
         [sys.executable, "app.py", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
          "+scene.frame=range(0,30,10)", f"hydra.sweep.dir={sweep}", "hydra.job.chdir=true"],

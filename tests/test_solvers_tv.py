@@ -232,9 +232,11 @@ def test_an_interrupted_run_resumes_from_its_checkpoint_to_the_same_density(tmp_
     monkeypatch.setattr(pipeline.Monitor, "__call__", original)
     resumed = reconstruct(cfg, run, resume=True)
     straight = reconstruct(cfg, reference)
-    assert resumed["solver"]["objective"] == straight["solver"]["objective"]
+    # bit for bit on 2 threads; with 16 threads the CPU kernels' summation order moved the
+    # objective by 3e-9 (relative), while resuming without the dual variable moves it by 1.6e-3
+    assert resumed["solver"]["objective"] == pytest.approx(straight["solver"]["objective"], rel=1e-7)
     with np.load(run / "density.npz") as a, np.load(reference / "density.npz") as b:
-        np.testing.assert_array_equal(a["density"], b["density"])
+        np.testing.assert_allclose(a["density"], b["density"], rtol=1e-5, atol=1e-7)
 
 
 def test_bad_weights_and_missing_geometry_are_refused(tmp_path):
