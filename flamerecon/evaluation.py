@@ -1,22 +1,29 @@
-"""Held-out scores beyond the full frame at the working resolution: PSNR inside the silhouette
-union of the captured and the rendered view, and PSNR/SSIM at the capture's native resolution
-(the scene loaded again with ``scene.downscale=1``, rendered only where the density can reach).
+"""How well a density predicts views: renders of a scene's cameras scored against what they
+recorded (PSNR, SSIM, the all-black floor), inside the silhouette union of the captured and the
+rendered view, and at the capture's native resolution (the scene loaded again with
+``scene.downscale=1``, rendered only where the density can reach); ``renders/`` panels.
 """
 
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
+import cv2
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from .atomic import atomic_write_bytes
 from .cameras import camera_subset, cameras_to
 from .grid import VoxelGrid
-from .metrics import psnr, ssim
-from .projector import camera_rays, integrate_dense, ray_box, support_box
+from .metrics import psnr, resample_to, ssim, volume_errors
+from .photometry import apply_gain_offset
+from .projector import camera_rays, integrate_dense, ray_box, render_image, support_box
 from .scenes import Scene, load_scene
 from .scenes.calibration import downscale_factor
 from .silhouettes import silhouettes
+from .tb_logging import side_by_side
 
 
 def silhouette_union(rendered: torch.Tensor, scene: Scene, views: list[int],
@@ -87,3 +94,67 @@ def native_scores(scene_cfg: DictConfig, volume: torch.Tensor, grid: VoxelGrid, 
         }
     H, W = scene.image_size
     return out, (W, H)
+
+
+def render_scene_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
+    """Rendered images (len(views), C, H, W) of the density for the given view indices."""
+    cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
+    return render_image(volume, grid, cams, step).cpu()
+
+
+def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
+                masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
+    """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against
+    the captured image, and the PSNR of an all-black prediction (the floor that gives a number its meaning); with ``masks``
+    (V, H, W) bool also both PSNRs inside them (see :func:`masked_scores`)."""
+    out = {}
+    for k, (img, v) in enumerate(zip(rendered, views)):
+        img, captured = scene.to_recorded(img), scene.recorded_view(v)
+        out[scene.views[v]] = {
+            "psnr": psnr(img, captured),
+            "ssim": ssim(img, captured),
+            "psnr_black": psnr(torch.zeros_like(captured), captured),
+        }
+        if masks is not None:
+            out[scene.views[v]].update(masked_scores(img, captured, masks[k]))
+    return out
+
+
+def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
+    """renders/<view>.png: rendered | captured | |error| x4, one per held-out view."""
+    folder = run_dir / "renders"
+    folder.mkdir(parents=True, exist_ok=True)
+    for img, v in zip(rendered, views):
+        panel = side_by_side(img, scene.images[v]).permute(1, 2, 0).numpy()
+        ok, png = cv2.imencode(".png", (panel[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        if not ok:
+            raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")
+        atomic_write_bytes(folder / f"{scene.views[v]}.png", png.tobytes())
+
+
+def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
+          step: float, silhouette: dict | None = None,
+          photometry: dict[str, tuple[float, float]] | None = None) -> tuple[dict, torch.Tensor]:
+    """Metrics of a density (C, nz, ny, nx): held-out and training views (with ``silhouette``
+    options also inside the silhouette union; training renders through each camera's
+    ``photometry`` (gain, offset) when given), volume errors against the truth when the
+    scene has one. Returns (metrics, held-out renders)."""
+    held_imgs = render_scene_views(volume, grid, scene, holdout, step)
+    train_imgs = render_scene_views(volume, grid, scene, train, step)
+    if photometry:
+        gain = torch.tensor([photometry[scene.views[v]][0] for v in train])
+        offset = torch.tensor([photometry[scene.views[v]][1] for v in train])
+        train_imgs = apply_gain_offset(train_imgs, gain, offset)
+    held_masks = train_masks = None
+    if silhouette is not None:
+        held_masks = silhouette_union(held_imgs, scene, holdout, silhouette)
+        train_masks = silhouette_union(train_imgs, scene, train, silhouette)
+    metrics = {"heldout": score_views(held_imgs, scene, holdout, held_masks),
+               "train": score_views(train_imgs, scene, train, train_masks)}
+    if scene.truth is not None:
+        truth = resample_to(scene.truth, grid.shape) if scene.truth_grid is not None and (
+            scene.truth_grid.bbox_min == grid.bbox_min and scene.truth_grid.bbox_max == grid.bbox_max
+        ) else None
+        if truth is not None:
+            metrics["volume"] = volume_errors(volume.cpu(), truth)
+    return metrics, held_imgs

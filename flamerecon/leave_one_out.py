@@ -16,15 +16,12 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from .atomic import write_json_atomic
-from .evaluation import silhouette_union
+from .evaluation import render_scene_views, score_views, silhouette_union, write_renders
 from .pipeline import (
     prepare,
-    render_views,
     resolve_device,
-    score_views,
     solve,
     warm_start,
-    write_renders,
 )
 from .scenes import SceneError, load_scene
 
@@ -58,7 +55,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
         x0 = warm_start(split, scene, device, setup)  # init= and/or grid.levels
         result, l1, _ = solve(split, setup, x0)
         v = scene.views.index(name)
-        image = render_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)
+        image = render_scene_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)
         masks = silhouette_union(image, scene, [v], silhouette)
         row = score_views(image, scene, [v], masks)[name]
         row.update(iterations=result.iterations, seconds=result.seconds, l1=l1,

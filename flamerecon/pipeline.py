@@ -11,13 +11,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from .atomic import atomic_write_bytes, write_json_atomic
+from .atomic import write_json_atomic
 from .cameras import K_of, camera_subset, cameras_to
 from .checkpoint import CHECKPOINT_FILE, load_checkpoint
 from .checks import (
@@ -29,16 +28,16 @@ from .checks import (
     memory_budget,
 )
 from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
-from .evaluation import masked_scores, native_scores, silhouette_union
+from .evaluation import native_scores, render_scene_views, score, score_views, write_renders
 from .export import export_run, load_density, save_density
 from .figures import top_view
 from .grid import VoxelGrid
 from .guard import SolveGuard, StopSolve, stop_signals
 from .hull import visual_hull
 from .levels import level_grids, level_iters
-from .metrics import psnr, resample_to, ssim, volume_errors
-from .photometry import apply_gain_offset, fit_gain_offset_rows, normalize_gains
-from .projector import camera_rays, make_operator, render_image
+from .metrics import resample_to
+from .photometry import fit_gain_offset_rows, normalize_gains
+from .projector import camera_rays, make_operator
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
 from .solvers import SOLVERS, Problem, Solver, SolveResult, make_solver, resolve_l1
@@ -277,42 +276,6 @@ def warm_start(cfg: DictConfig, scene: Scene, device: torch.device, setup: Setup
     return None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
 
 
-def render_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
-    """Rendered images (len(views), C, H, W) of the density for the given view indices."""
-    cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
-    return render_image(volume, grid, cams, step).cpu()
-
-
-def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
-                masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
-    """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against
-    the captured image, and the PSNR of an all-black prediction (the floor that gives a number its meaning); with ``masks``
-    (V, H, W) bool also both PSNRs inside them (see :func:`~flamerecon.evaluation.masked_scores`)."""
-    out = {}
-    for k, (img, v) in enumerate(zip(rendered, views)):
-        img, captured = scene.to_recorded(img), scene.recorded_view(v)
-        out[scene.views[v]] = {
-            "psnr": psnr(img, captured),
-            "ssim": ssim(img, captured),
-            "psnr_black": psnr(torch.zeros_like(captured), captured),
-        }
-        if masks is not None:
-            out[scene.views[v]].update(masked_scores(img, captured, masks[k]))
-    return out
-
-
-def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
-    """renders/<view>.png: rendered | captured | |error| x4, one per held-out view."""
-    folder = run_dir / "renders"
-    folder.mkdir(parents=True, exist_ok=True)
-    for img, v in zip(rendered, views):
-        panel = side_by_side(img, scene.images[v]).permute(1, 2, 0).numpy()
-        ok, png = cv2.imencode(".png", (panel[..., ::-1] * 255 + 0.5).astype(np.uint8))
-        if not ok:
-            raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")
-        atomic_write_bytes(folder / f"{scene.views[v]}.png", png.tobytes())
-
-
 def cameras_record(scene: Scene, train: list[int],
                    photometry: dict[str, tuple[float, float]] | None = None) -> list[dict]:
     """cameras.json content: every camera with K, world_to_camera, size, its role, and its
@@ -333,34 +296,6 @@ def cameras_record(scene: Scene, train: list[int],
         }
         for i, name in enumerate(scene.views)
     ]
-
-
-def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
-          step: float, silhouette: dict | None = None,
-          photometry: dict[str, tuple[float, float]] | None = None) -> tuple[dict, torch.Tensor]:
-    """Metrics of a density (C, nz, ny, nx): held-out and training views (with ``silhouette``
-    options also inside the silhouette union; training renders through each camera's
-    ``photometry`` (gain, offset) when given), volume errors against the truth when the
-    scene has one. Returns (metrics, held-out renders)."""
-    held_imgs = render_views(volume, grid, scene, holdout, step)
-    train_imgs = render_views(volume, grid, scene, train, step)
-    if photometry:
-        gain = torch.tensor([photometry[scene.views[v]][0] for v in train])
-        offset = torch.tensor([photometry[scene.views[v]][1] for v in train])
-        train_imgs = apply_gain_offset(train_imgs, gain, offset)
-    held_masks = train_masks = None
-    if silhouette is not None:
-        held_masks = silhouette_union(held_imgs, scene, holdout, silhouette)
-        train_masks = silhouette_union(train_imgs, scene, train, silhouette)
-    metrics = {"heldout": score_views(held_imgs, scene, holdout, held_masks),
-               "train": score_views(train_imgs, scene, train, train_masks)}
-    if scene.truth is not None:
-        truth = resample_to(scene.truth, grid.shape) if scene.truth_grid is not None and (
-            scene.truth_grid.bbox_min == grid.bbox_min and scene.truth_grid.bbox_max == grid.bbox_max
-        ) else None
-        if truth is not None:
-            metrics["volume"] = volume_errors(volume.cpu(), truth)
-    return metrics, held_imgs
 
 
 def mean_of(per_view: dict[str, dict[str, float]], key: str) -> float:
@@ -436,7 +371,7 @@ class Monitor:
         """Render the held-out views of the iterate x (M, C) and log them."""
         s = self.setup
         vol = s.volume(x.detach())
-        self.log_pictures(it, vol, render_views(vol, s.grid, s.scene, s.holdout, s.step))
+        self.log_pictures(it, vol, render_scene_views(vol, s.grid, s.scene, s.holdout, s.step))
 
     def log_pictures(self, it: int, vol: torch.Tensor, imgs: torch.Tensor) -> None:
         """Held-out PSNR, held-out renders imgs (V, C, H, W) beside the captured views, and the
