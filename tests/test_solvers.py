@@ -154,3 +154,13 @@ def test_lbfgsb_reaches_sklearn_objective(lasso_case):
         Problem(csr(A), torch.tensor(b), lam))
     assert (res.x >= 0).all()
     assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-4 * ref
+
+
+@pytest.mark.parametrize("name", ["fista", "fista_smooth", "tv", "lbfgsb", "adam", "cgls", "sart"])
+def test_every_iterative_solver_stops_at_the_first_check_past_its_time_budget(name):
+    """max_seconds=0 is spent before the first check: the solve ends there, unconverged."""
+    A, b, lam = tiny_problem()
+    problem = Problem(csr(A), torch.tensor(b), lam, grid_shape=(3, 4, 5),
+                      voxel_index=torch.arange(A.shape[1]))
+    result = make_solver(name, max_iters=1000, tol=0.0, check_every=5, max_seconds=0.0).solve(problem)
+    assert result.iterations == 5 and not result.converged

@@ -21,19 +21,17 @@ class Adam(Solver):
     halved whenever the objective has not improved over ``patience`` checks (one check every
     ``check_every`` iterations).
     Stops when the relative duality gap (computed from the gradient autograd already gives)
-    is below ``tol``.
+    is below ``tol``, after ``max_iters``, or at the first check past ``max_seconds``.
     """
 
     def __init__(self, lr: float = 0.05, max_iters: int = 2000, tol: float = 1e-4,
                  check_every: int = 10, lr_final: float = 1e-3, patience: int = 3,
-                 **_: object) -> None:
+                 max_seconds: float | None = None, **_: object) -> None:
         if lr <= 0 or lr_final <= 0:
             raise ValueError(f"solver.lr and solver.lr_final must be > 0 (got {lr}, {lr_final})")
+        super().__init__(max_iters, tol, check_every, max_seconds)
         self.lr = float(lr)
         self.lr_final = float(lr_final)
-        self.max_iters = int(max_iters)
-        self.tol = float(tol)
-        self.check_every = max(1, int(check_every))
         self.patience = max(1, int(patience))
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
@@ -74,7 +72,7 @@ class Adam(Solver):
                 history.append({"iteration": it, **info})
                 if callback is not None:
                     callback(it, xd, info)
-                if info["rel_gap"] < self.tol or it == self.max_iters:
+                if info["rel_gap"] < self.tol or it == self.max_iters or self.out_of_time():
                     converged = info["rel_gap"] < self.tol
                     break  # the gap belongs to this x, before the step
                 if primal < best:

@@ -99,6 +99,21 @@ class Solver:
     """Base class: subclasses implement :meth:`_run`; :meth:`solve` times it."""
 
     name = "base"
+    max_seconds: float | None = None
+
+    def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
+                 max_seconds: float | None = None) -> None:
+        """The budget iterative solvers share: at most ``max_iters`` iterations, stop below
+        ``tol`` (each solver's own criterion), tested every ``check_every`` iterations, and at
+        the first test past ``max_seconds`` of wall time (None: no limit)."""
+        self.max_iters = int(max_iters)
+        self.tol = float(tol)
+        self.check_every = max(1, int(check_every))
+        self.max_seconds = None if max_seconds is None else float(max_seconds)
+
+    def out_of_time(self) -> bool:
+        """Whether this :meth:`solve` has run past ``max_seconds``."""
+        return self.max_seconds is not None and time.perf_counter() - self._started > self.max_seconds
 
     def solve(
         self, problem: Problem, x0: torch.Tensor | None = None, callback: Callback | None = None
@@ -110,9 +125,9 @@ class Solver:
             if x0 is None
             else x0.to(problem.b).clamp_min(0).clone()
         )
-        start = time.perf_counter()
+        self._started = time.perf_counter()
         result = self._run(problem, x, callback)
-        result.seconds = time.perf_counter() - start
+        result.seconds = time.perf_counter() - self._started
         return result
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:

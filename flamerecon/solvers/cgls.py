@@ -16,16 +16,16 @@ from .base import Callback, Problem, Solver, SolveResult, register
 class Cgls(Solver):
     """CGLS (Hestenes-Stiefel on A^T A), all channels at once with per-channel step sizes.
 
-    Stops when ||A^T r - damp^2 x|| <= tol * ||A^T b|| in every channel, or after ``max_iters``.
+    Stops when ||A^T r - damp^2 x|| <= tol * ||A^T b|| in every channel, after ``max_iters``,
+    or at the first check past ``max_seconds``.
     """
 
     def __init__(self, max_iters: int = 200, tol: float = 1e-6, damp: float = 0.0,
-                 nonneg: bool = False, check_every: int = 10, **_: object) -> None:
-        self.max_iters = int(max_iters)
-        self.tol = float(tol)
+                 nonneg: bool = False, check_every: int = 10, max_seconds: float | None = None,
+                 **_: object) -> None:
+        super().__init__(max_iters, tol, check_every, max_seconds)
         self.damp2 = float(damp) ** 2
         self.nonneg = bool(nonneg)
-        self.check_every = max(1, int(check_every))
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
         A, b = problem.A, problem.b
@@ -57,6 +57,8 @@ class Cgls(Solver):
                 history.append({"iteration": it, **info})
                 if callback is not None:
                     callback(it, x, info)
+                if self.out_of_time():
+                    break
         if self.nonneg:
             x = x.clamp_min(0)
         return SolveResult(x, it, 0.0, problem.objective(x), converged, history)

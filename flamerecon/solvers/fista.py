@@ -3,8 +3,6 @@ O'Donoghue & Candes 2015 for the gradient restart)."""
 
 from __future__ import annotations
 
-import time
-
 import torch
 
 from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
@@ -20,10 +18,7 @@ class Fista(Solver):
 
     def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
                  restart: bool = True, max_seconds: float | None = None, **_: object) -> None:
-        self.max_iters = int(max_iters)
-        self.max_seconds = None if max_seconds is None else float(max_seconds)
-        self.tol = float(tol)
-        self.check_every = max(1, int(check_every))
+        super().__init__(max_iters, tol, check_every, max_seconds)
         self.restart = bool(restart)
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
@@ -33,7 +28,6 @@ class Fista(Solver):
                 lipschitz: float | None = None) -> SolveResult:
         """FISTA from ``x`` (M, C); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
         A, b, lam = problem.A, problem.b, problem.l1
-        t_start = time.perf_counter()
         resume = self._take_resume()
         if resume is None:
             L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(
@@ -74,6 +68,6 @@ class Fista(Solver):
                 if info["rel_gap"] < self.tol:
                     converged = True
                     break
-                if self.max_seconds is not None and time.perf_counter() - t_start > self.max_seconds:
+                if self.out_of_time():
                     break
         return SolveResult(x, it, 0.0, problem.objective(x), converged, history)

@@ -7,8 +7,6 @@ in float64; the operator stays on its device), and its own step costs ~0.14 s pe
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import torch
 
@@ -27,10 +25,7 @@ class Lbfgsb(Solver):
 
     def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
                  memory: int = 10, max_seconds: float | None = None, **_: object) -> None:
-        self.max_seconds = None if max_seconds is None else float(max_seconds)
-        self.max_iters = int(max_iters)
-        self.tol = float(tol)
-        self.check_every = max(1, int(check_every))
+        super().__init__(max_iters, tol, check_every, max_seconds)
         self.memory = int(memory)
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
@@ -39,7 +34,6 @@ class Lbfgsb(Solver):
         A, b, lam = problem.A, problem.b, problem.l1
         shape, dtype, device = x.shape, b.dtype, b.device
         last: dict[str, torch.Tensor] = {}
-        start = time.perf_counter()
 
         def to_torch(z: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(z).to(device=device, dtype=dtype).view(shape)
@@ -76,7 +70,7 @@ class Lbfgsb(Solver):
             if info["rel_gap"] < self.tol:
                 state["converged"] = True
                 raise _Stop
-            if self.max_seconds is not None and time.perf_counter() - start > self.max_seconds:
+            if self.out_of_time():
                 raise _Stop
 
         z0 = x.double().cpu().numpy().ravel()

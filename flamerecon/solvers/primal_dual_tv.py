@@ -11,8 +11,6 @@ shifted clamp) and TV through its dual, so only A.forward and A.adjoint are need
 
 from __future__ import annotations
 
-import time
-
 import torch
 
 from .base import (
@@ -79,20 +77,16 @@ class PrimalDualTV(Solver):
             raise ValueError(f"solver.tv must be >= 0, got {tv}")
         if dual_step is not None and float(dual_step) <= 0:
             raise ValueError(f"solver.dual_step must be > 0 (or null), got {dual_step}")
+        super().__init__(max_iters, tol, check_every, max_seconds)
         self.tv = float(tv)
-        self.max_iters = int(max_iters)
-        self.tol = float(tol)
-        self.check_every = max(1, int(check_every))
         self.dual_step = (max(0.1, (self.tv / 1e-3) ** 0.5) if dual_step is None
                           else float(dual_step))
-        self.max_seconds = None if max_seconds is None else float(max_seconds)
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
         if problem.grid_shape is None or problem.voxel_index is None:
             raise ValueError("solver=tv needs the hull geometry: Problem.grid_shape and "
                              "Problem.voxel_index are not set")
         A, b, lam = problem.A, problem.b, problem.l1
-        t_start = time.perf_counter()
         D = HullGradient(problem.grid_shape, problem.voxel_index.to(b.device))
         resume = self._take_resume()
         if resume is None:
@@ -125,7 +119,7 @@ class PrimalDualTV(Solver):
                 if info["rel_gap"] < self.tol:
                     converged = True
                     break
-                if self.max_seconds is not None and time.perf_counter() - t_start > self.max_seconds:
+                if self.out_of_time():
                     break
         tv_value = float(total_variation(D.forward(x)).sum())
         objective = problem.objective(x) + mu * tv_value

@@ -19,18 +19,18 @@ class Sart(Solver):
     """Simultaneous SART with the nonnegativity clamp and relaxation ``relax`` in (0, 2).
 
     Stops when the weighted residual decreased by less than ``tol`` (relative) over the last
-    ``check_every`` iterations, or after ``max_iters``. Assumes a nonnegative operator.
+    ``check_every`` iterations, after ``max_iters``, or at the first check past ``max_seconds``.
+    Assumes a nonnegative operator.
     """
 
     def __init__(self, max_iters: int = 200, tol: float = 1e-5, relax: float = 1.0,
-                 nonneg: bool = True, check_every: int = 10, **_: object) -> None:
+                 nonneg: bool = True, check_every: int = 10, max_seconds: float | None = None,
+                 **_: object) -> None:
         if not 0.0 < float(relax) < 2.0:
             raise ValueError(f"solver.relax must lie in (0, 2), got {relax}")
-        self.max_iters = int(max_iters)
-        self.tol = float(tol)
+        super().__init__(max_iters, tol, check_every, max_seconds)
         self.relax = float(relax)
         self.nonneg = bool(nonneg)
-        self.check_every = max(1, int(check_every))
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
         A, b = problem.A, problem.b
@@ -59,6 +59,8 @@ class Sart(Solver):
                     callback(it, x, info)
                 if last - weighted <= self.tol * last:
                     converged = True
+                    break
+                if self.out_of_time():
                     break
                 last = weighted
         return SolveResult(x, it, 0.0, problem.objective(x), converged, history)
