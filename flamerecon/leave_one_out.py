@@ -23,22 +23,23 @@ from .pipeline import (
     solve,
     warm_start,
 )
-from .scenes import SceneError, load_scene
+from .scenes import Scene, SceneError, load_scene
 
 #: the per-view numbers averaged into the table's last row.
 AVERAGED = ("psnr", "ssim", "psnr_black", "psnr_silhouette", "psnr_black_silhouette")
 
 
 def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None = None,
-                  exclude: list[str] | None = None, progress=None) -> dict:
+                  exclude: list[str] | None = None, progress=None, scene: Scene | None = None) -> dict:
     """Hold out each of ``views`` in turn (default: every view not in ``exclude``), fit the
     rest (minus ``exclude``) as ``cfg`` says, score the held-out view. Writes
     ``out_dir/loo.json`` and ``out_dir/renders/<view>.png``; returns loo.json's dict:
     ``views`` {name: scores, iterations, seconds, l1, train}, ``mean`` over views of
-    :data:`AVERAGED`, ``exclude``, ``config``. ``progress(name, row)`` is called per view."""
+    :data:`AVERAGED`, ``exclude``, ``config``. ``progress(name, row)`` is called per view.
+    ``scene`` is ``cfg.scene`` already loaded (loaded here when None)."""
     out_dir = Path(out_dir)
     device = resolve_device(cfg.device)
-    scene = load_scene(cfg.scene)
+    scene = load_scene(cfg.scene) if scene is None else scene
     exclude = list(exclude or [])
     for name in [*exclude, *(views or [])]:
         if name not in scene.views:

@@ -216,8 +216,6 @@ def benchmark_grid(n: int, args, device: torch.device) -> dict:
     print(f"bandwidth {bw / 1e9:.1f} GB/s; A x {t_ax * 1e3:.1f} ms, A^T y {t_aty * 1e3:.1f} ms, "
           f"bound {bound * 1e3:.1f} ms each; pair at {(t_ax + t_aty) / (2 * bound):.1f}x the bound")
 
-    A64 = A.to_scipy().astype(np.float64)  # the peers' input (CPU, float64)
-    P64 = P.cpu().double().numpy()
     A64_device, P64_device = A.A.to(torch.float64), P.double()  # the tracers' objective
     problem = Problem(A, P, lam, grid_shape=built["grid"].shape, voxel_index=built["voxel_index"])
     runs: dict[str, dict] = {}
@@ -235,7 +233,10 @@ def benchmark_grid(n: int, args, device: torch.device) -> dict:
             peers["celer_lasso"] = "celer"
         except ImportError:
             print("  celer: not installed, skipped")
-    A_csc = A64.tocsc()
+    if peers or "sklearn_lassolars" in args.peers:  # the peers' input (CPU, float64)
+        A64, P64 = A.to_scipy().astype(np.float64), P.cpu().double().numpy()
+    if peers:
+        A_csc = A64.tocsc()
     for label, module in peers.items():
         estimator = __import__(module, fromlist=["Lasso"]).Lasso
         tracer = Tracer(A64_device, P64_device, lam)

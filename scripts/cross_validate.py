@@ -30,6 +30,7 @@ from flamerecon.atomic import write_json_atomic
 from flamerecon.errors import FlameReconError
 from flamerecon.leave_one_out import leave_one_out
 from flamerecon.runner import script_error
+from flamerecon.scenes import load_scene
 
 
 def key_values(text: str) -> tuple[str, list[str]]:
@@ -54,11 +55,12 @@ def score_setting(overrides: list[str], averages: list[list[str]], exclude: list
             cfg = compose(config_name="train", overrides=[*overrides, *extra])
         label = " ".join(extra) or "all"
         folder = out / f"{len(parts):02d}"
-        cv = leave_one_out(cfg, folder / "cv", exclude=exclude)
+        scene = load_scene(cfg.scene)  # once for the folds and the test fit
+        cv = leave_one_out(cfg, folder / "cv", exclude=exclude, scene=scene)
         part = {"cv_psnr": cv["mean"]["psnr"], "cv_ssim": cv["mean"]["ssim"],
                 "folds": {v: r["psnr"] for v, r in cv["views"].items()}}
         if test and exclude:
-            held = leave_one_out(cfg, folder / "test", views=exclude, exclude=exclude)
+            held = leave_one_out(cfg, folder / "test", views=exclude, exclude=exclude, scene=scene)
             part.update(test_psnr=held["mean"]["psnr"], test_ssim=held["mean"]["ssim"])
         parts[label] = part
     keys = [k for k in ("cv_psnr", "cv_ssim", "test_psnr", "test_ssim") if k in next(iter(parts.values()))]
