@@ -330,7 +330,7 @@ def summary_table(metrics: dict) -> str:
     rows += [
         ("solver", f"{s['name']} (l1 = {s['l1']:.4g})"),
         ("iterations", f"{s['iterations']}" + (
-            "" if s.get("converged", True) else " (the iteration budget"
+            "" if s.get("converged", True) else " (stopped by the budget"
             + (f"; relative duality gap {s['rel_gap']:.1e})" if "rel_gap" in s else ")"))),
         ("seconds", f"{s['seconds']:.2f}"),
     ]
