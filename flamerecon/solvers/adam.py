@@ -8,7 +8,7 @@ import math
 
 import torch
 
-from .base import Callback, Problem, Solver, SolveResult, density_scale, duality_gap, register
+from .base import Problem, Solver, density_scale, duality_gap, register
 
 
 @register("adam")
@@ -26,7 +26,7 @@ class Adam(Solver):
 
     def __init__(self, lr: float = 0.05, max_iters: int = 2000, tol: float = 1e-4,
                  check_every: int = 10, lr_final: float = 1e-3, patience: int = 3,
-                 max_seconds: float | None = None, **_: object) -> None:
+                 max_seconds: float | None = None) -> None:
         if lr <= 0 or lr_final <= 0:
             raise ValueError(f"solver.lr and solver.lr_final must be > 0 (got {lr}, {lr_final})")
         super().__init__(max_iters, tol, check_every, max_seconds)
@@ -34,59 +34,65 @@ class Adam(Solver):
         self.lr_final = float(lr_final)
         self.patience = max(1, int(patience))
 
-    def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
-        A, b, lam = problem.A, problem.b, problem.l1
-        resume = self._take_resume()
-        lr0 = self.lr * float(density_scale(A, b).max()) if resume is None else resume["lr0"]
-        param = x.clone().requires_grad_(True)
-        opt = torch.optim.Adam([param], lr=lr0)
-        history: list[dict] = []
-        converged, it, halvings, stalled, best = False, 0, 0, 0, math.inf
-        start = 1
+    @property
+    def x(self) -> torch.Tensor:
+        return self.param.detach()
+
+    def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None) -> int:
+        A, b = problem.A, problem.b
+        self.problem = problem
+        self.lr0 = self.lr * float(density_scale(A, b).max()) if resume is None else resume["lr0"]
+        self.param = x.clone().requires_grad_(True)
+        self.opt = torch.optim.Adam([self.param], lr=self.lr0)
+        self.halvings, self.stalled, self.best, start = 0, 0, math.inf, 1
         if resume is not None:  # redo iteration resume["iteration"] from the state before its step
-            opt.load_state_dict(resume["optimizer"])
-            halvings, stalled, best = resume["halvings"], resume["stalled"], resume["best"]
-            history, start = list(resume["history"]), resume["iteration"]
-        for it in range(start, self.max_iters + 1):
-            opt.zero_grad(set_to_none=True)
-            r = A.forward(param) - b
-            loss = 0.5 * (r * r).sum() + lam * param.sum()
-            loss.backward()
-            if it % self.check_every == 0 or it == self.max_iters:
-                xd = param.detach()
-                primal, gap = duality_gap(problem, xd, r.detach(), param.grad - lam)
-                info = {
-                    "objective": primal,
-                    "data": 0.5 * float((r.detach().double() ** 2).sum()),
-                    "l1": lam * float(xd.double().sum()),
-                    "gap": gap,
-                    "rel_gap": gap / max(primal, 1e-30),
-                    "lr": opt.param_groups[0]["lr"],
-                }
-                if callback is not None:
-                    self._state = {
-                        "iteration": it, "x": xd, "optimizer": opt.state_dict(), "lr0": lr0,
-                        "halvings": halvings, "stalled": stalled, "best": best,
-                        "history": list(history),
-                    }
-                history.append({"iteration": it, **info})
-                if callback is not None:
-                    callback(it, xd, info)
-                if info["rel_gap"] < self.tol or it == self.max_iters or self.out_of_time():
-                    converged = info["rel_gap"] < self.tol
-                    break  # the gap belongs to this x, before the step
-                if primal < best:
-                    best, stalled = primal, 0
-                else:
-                    stalled += 1
-                    if stalled >= self.patience:
-                        halvings, stalled = halvings + 1, 0  # oscillating: shrink the step
-            cosine = 0.5 * (1 + math.cos(math.pi * it / self.max_iters))
-            opt.param_groups[0]["lr"] = (
-                lr0 * (self.lr_final + (1 - self.lr_final) * cosine) * 0.5**halvings
+            self.opt.load_state_dict(resume["optimizer"])
+            self.halvings, self.stalled, self.best = resume["halvings"], resume["stalled"], resume["best"]
+            start = resume["iteration"]
+        self.pending = False  # the step of the previous iteration is still to take
+        return start
+
+    def step(self, it: int) -> None:
+        """The step of iteration it - 1 (taken only once its check did not stop the solve),
+        then the gradient at the result, which iteration ``it``'s check reports on."""
+        if self.pending:
+            cosine = 0.5 * (1 + math.cos(math.pi * (it - 1) / self.max_iters))
+            self.opt.param_groups[0]["lr"] = (
+                self.lr0 * (self.lr_final + (1 - self.lr_final) * cosine) * 0.5**self.halvings
             )
-            opt.step()
+            self.opt.step()
             with torch.no_grad():
-                param.clamp_(min=0)
-        x = param.detach()
-        return SolveResult(x, it, 0.0, problem.objective(x), converged, history)
+                self.param.clamp_(min=0)
+        A, b, lam, param = self.problem.A, self.problem.b, self.problem.l1, self.param
+        self.opt.zero_grad(set_to_none=True)
+        self.r = A.forward(param) - b
+        loss = 0.5 * (self.r * self.r).sum() + lam * param.sum()
+        loss.backward()
+        self.pending = True
+
+    def report(self, it: int) -> dict[str, float]:
+        """The gap belongs to this x, before its step."""
+        problem, xd, lam = self.problem, self.param.detach(), self.problem.l1
+        r = self.r.detach()
+        primal, gap = duality_gap(problem, xd, r, self.param.grad - lam)
+        return {
+            "objective": primal,
+            "data": 0.5 * float((r.double() ** 2).sum()),
+            "l1": lam * float(xd.double().sum()),
+            "gap": gap,
+            "rel_gap": gap / max(primal, 1e-30),
+            "lr": self.opt.param_groups[0]["lr"],
+        }
+
+    def after_check(self, info: dict) -> None:
+        if info["objective"] < self.best:
+            self.best, self.stalled = info["objective"], 0
+        else:
+            self.stalled += 1
+            if self.stalled >= self.patience:  # oscillating: shrink the step
+                self.halvings, self.stalled = self.halvings + 1, 0
+
+    def snapshot(self, it: int) -> dict:
+        return {"iteration": it, "x": self.x, "optimizer": self.opt.state_dict(), "lr0": self.lr0,
+                "halvings": self.halvings, "stalled": self.stalled, "best": self.best,
+                "history": self.history[:-1]}  # this iteration is redone on resume

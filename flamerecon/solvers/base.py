@@ -12,6 +12,7 @@ voxels), ``b`` (N, C) the pixel values and ``x`` (M, C) the voxel densities. The
 
 from __future__ import annotations
 
+import inspect
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -96,7 +97,13 @@ Callback = Callable[[int, torch.Tensor, dict], None]
 
 
 class Solver:
-    """Base class: subclasses implement :meth:`_run`; :meth:`solve` times it."""
+    """Base class: :meth:`solve` times :meth:`_run`, which by default is the iteration every
+    iterative solver shares (CIL's ``Algorithm.run`` style): :meth:`set_up`, then :meth:`step`
+    up to ``max_iters`` times; at every ``check_every``-th iteration and the last,
+    :meth:`report` -> history, resume state, callback, then stop when :meth:`reached` says the
+    tolerance is met, at ``max_iters`` or past ``max_seconds``. A subclass writes those hooks
+    (its update step and its measures); a solver that is no such loop overrides :meth:`_run`.
+    """
 
     name = "base"
     max_seconds: float | None = None
@@ -131,10 +138,72 @@ class Solver:
         return result
 
     def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
+        resume = self._take_resume()
+        self.history: list[dict] = [] if resume is None else list(resume["history"])
+        start = self.set_up(problem, x, resume)
+        converged, it = self.reached_at_start(), start - 1
+        for it in range(start, self.max_iters + 1) if not converged else ():
+            self.step(it)
+            if not self.is_check(it):
+                continue
+            info = self.report(it)
+            converged = self._checked(it, info, callback)
+            if converged or it == self.max_iters or self.out_of_time():
+                break
+            self.after_check(info)
+        x, objective = self.result(problem)
+        return SolveResult(x, it, 0.0, objective, converged, self.history)
+
+    def _checked(self, it: int, info: dict, callback: Callback | None) -> bool:
+        """At a check: ``info`` into the history, the resume state set and the callback called
+        (it may add entries to ``info``); whether the tolerance is met."""
+        entry = {"iteration": it, **info}
+        self.history.append(entry)
+        if callback is not None:
+            self._state = self.snapshot(it)
+            callback(it, self.x, info)
+            entry.update(info)
+        return self.reached(info)
+
+    # The hooks of the shared loop. ``self.x`` (M, C) is the current iterate throughout.
+    def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None) -> int:
+        """Prepare the iteration from ``x`` (M, C), or from ``resume`` (a :meth:`state`, whose
+        ``x`` is ``x``); returns the number of the first iteration to run."""
         raise NotImplementedError
 
-    # Optional exact resume (checkpoints): a solver that supports it sets ``self._state`` to the
-    # dict it needs to go on just before each callback, and reads ``self._resume`` in ``_run``.
+    def step(self, it: int) -> None:
+        """Iteration ``it``: the solver's update of ``self.x``."""
+        raise NotImplementedError
+
+    def is_check(self, it: int) -> bool:
+        """Whether iteration ``it`` reports, may stop and calls the callback."""
+        return it % self.check_every == 0 or it == self.max_iters
+
+    def report(self, it: int) -> dict[str, float]:
+        """The measures at a check: at least ``objective``, ``data`` and ``l1``."""
+        raise NotImplementedError
+
+    def reached(self, info: dict) -> bool:
+        """Whether the solver's stopping tolerance is met at the check that reported ``info``."""
+        return info["rel_gap"] < self.tol
+
+    def reached_at_start(self) -> bool:
+        """Whether the starting point already meets the tolerance (then no iteration runs)."""
+        return False
+
+    def after_check(self, info: dict) -> None:
+        """Bookkeeping after a check that did not stop (step-size control, ...)."""
+
+    def snapshot(self, it: int) -> dict | None:
+        """What :meth:`state` returns at the check of iteration ``it``; None: no exact resume."""
+        return None
+
+    def result(self, problem: Problem) -> tuple[torch.Tensor, float]:
+        """The final densities (M, C) and their objective."""
+        return self.x, problem.objective(self.x)
+
+    # Optional exact resume (checkpoints): a solver that supports it returns from
+    # :meth:`snapshot` the dict it needs to go on, and reads its ``resume`` in :meth:`set_up`.
     _state: dict | None = None
     _resume: dict | None = None
 
@@ -167,10 +236,33 @@ def register(name: str):
     return deco
 
 
+def option_names(cls: type[Solver]) -> list[str]:
+    """The keyword options a solver class takes: its ``__init__``'s, and those of the classes
+    it passes ``**options`` on to."""
+    names: set[str] = set()
+    for klass in cls.__mro__:
+        init = klass.__dict__.get("__init__")
+        if init is None:
+            continue
+        params = list(inspect.signature(init).parameters.values())[1:]  # past self
+        names |= {p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break
+    return sorted(names)
+
+
 def make_solver(name: str, **options) -> Solver:
-    """Instantiate the solver registered as ``name`` with its options."""
+    """Instantiate the solver registered as ``name`` with its options; an option it does not
+    take is a ValueError naming it and listing the valid ones."""
     if name not in SOLVERS:
         raise ValueError(f"unknown solver '{name}': choose one of {sorted(SOLVERS)}")
+    valid = option_names(SOLVERS[name])
+    unknown = [key for key in options if key not in valid]
+    if unknown:
+        raise ValueError(
+            f"solver.{unknown[0]}: unknown option of solver '{name}'; valid: {', '.join(valid)} "
+            "(and name, l1, l1_rel)"
+        )
     return SOLVERS[name](**options)
 
 

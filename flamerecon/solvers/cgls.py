@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, Problem, Solver, SolveResult, register
+from .base import Problem, Solver, register
 
 
 @register("cgls")
@@ -21,44 +21,52 @@ class Cgls(Solver):
     """
 
     def __init__(self, max_iters: int = 200, tol: float = 1e-6, damp: float = 0.0,
-                 nonneg: bool = False, check_every: int = 10, max_seconds: float | None = None,
-                 **_: object) -> None:
+                 nonneg: bool = False, check_every: int = 10,
+                 max_seconds: float | None = None) -> None:
         super().__init__(max_iters, tol, check_every, max_seconds)
         self.damp2 = float(damp) ** 2
         self.nonneg = bool(nonneg)
 
-    def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
+    def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None) -> int:
         A, b = problem.A, problem.b
-        r = b - A.forward(x)
-        s = A.adjoint(r) - self.damp2 * x  # negative gradient of the damped LS objective
-        p = s.clone()
-        gamma = (s.double() ** 2).sum(0)
-        stop = self.tol * A.adjoint(b).double().norm(dim=0)
-        history: list[dict] = []
-        converged, it = bool((gamma.sqrt() <= stop).all()), 0
-        while not converged and it < self.max_iters:
-            it += 1
-            q = A.forward(p)
-            denom = (q.double() ** 2).sum(0) + self.damp2 * (p.double() ** 2).sum(0)
-            alpha = torch.where(denom > 0, gamma / denom.clamp_min(1e-300), torch.zeros_like(gamma))
-            x = x + alpha.to(x.dtype) * p
-            r = r - alpha.to(x.dtype) * q
-            s = A.adjoint(r) - self.damp2 * x
-            gamma_new = (s.double() ** 2).sum(0)
-            beta = torch.where(gamma > 0, gamma_new / gamma.clamp_min(1e-300), torch.zeros_like(gamma))
-            p = s + beta.to(x.dtype) * p
-            gamma = gamma_new
-            converged = bool((gamma.sqrt() <= stop).all())
-            if it % self.check_every == 0 or converged or it == self.max_iters:
-                data = 0.5 * float((r.double() ** 2).sum())
-                l1 = problem.l1 * float(x.double().abs().sum())
-                info = {"objective": data + l1, "data": data, "l1": l1,
-                        "grad_norm": float(gamma.sum().sqrt())}
-                history.append({"iteration": it, **info})
-                if callback is not None:
-                    callback(it, x, info)
-                if self.out_of_time():
-                    break
-        if self.nonneg:
-            x = x.clamp_min(0)
-        return SolveResult(x, it, 0.0, problem.objective(x), converged, history)
+        self.problem, self.x = problem, x
+        self.r = b - A.forward(x)
+        s = A.adjoint(self.r) - self.damp2 * x  # negative gradient of the damped LS objective
+        self.p = s.clone()
+        self.gamma = (s.double() ** 2).sum(0)
+        self.stop = self.tol * A.adjoint(b).double().norm(dim=0)
+        self.converged = bool((self.gamma.sqrt() <= self.stop).all())
+        return 1
+
+    def step(self, it: int) -> None:
+        A, x, p, gamma = self.problem.A, self.x, self.p, self.gamma
+        q = A.forward(p)
+        denom = (q.double() ** 2).sum(0) + self.damp2 * (p.double() ** 2).sum(0)
+        alpha = torch.where(denom > 0, gamma / denom.clamp_min(1e-300), torch.zeros_like(gamma))
+        self.x = x = x + alpha.to(x.dtype) * p
+        self.r = self.r - alpha.to(x.dtype) * q
+        s = A.adjoint(self.r) - self.damp2 * x
+        gamma_new = (s.double() ** 2).sum(0)
+        beta = torch.where(gamma > 0, gamma_new / gamma.clamp_min(1e-300), torch.zeros_like(gamma))
+        self.p = s + beta.to(x.dtype) * p
+        self.gamma = gamma_new
+        self.converged = bool((gamma_new.sqrt() <= self.stop).all())
+
+    def is_check(self, it: int) -> bool:
+        return self.converged or super().is_check(it)
+
+    def report(self, it: int) -> dict[str, float]:
+        data = 0.5 * float((self.r.double() ** 2).sum())
+        l1 = self.problem.l1 * float(self.x.double().abs().sum())
+        return {"objective": data + l1, "data": data, "l1": l1,
+                "grad_norm": float(self.gamma.sum().sqrt())}
+
+    def reached(self, info: dict) -> bool:
+        return self.converged
+
+    def reached_at_start(self) -> bool:
+        return self.converged
+
+    def result(self, problem: Problem) -> tuple[torch.Tensor, float]:
+        x = self.x.clamp_min(0) if self.nonneg else self.x
+        return x, problem.objective(x)

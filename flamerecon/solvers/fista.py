@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
+from .base import Problem, Solver, duality_gap, power_norm_sq, register
 
 
 @register("fista")
@@ -17,57 +17,54 @@ class Fista(Solver):
     """
 
     def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
-                 restart: bool = True, max_seconds: float | None = None, **_: object) -> None:
+                 restart: bool = True, max_seconds: float | None = None) -> None:
         super().__init__(max_iters, tol, check_every, max_seconds)
         self.restart = bool(restart)
 
-    def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
-        return self.iterate(problem, x, callback)
-
-    def iterate(self, problem: Problem, x: torch.Tensor, callback: Callback | None,
-                lipschitz: float | None = None) -> SolveResult:
+    def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None,
+               lipschitz: float | None = None) -> int:
         """FISTA from ``x`` (M, C); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
-        A, b, lam = problem.A, problem.b, problem.l1
-        resume = self._take_resume()
+        A, b = problem.A, problem.b
+        self.problem, self.x = problem, x
         if resume is None:
             L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(
                 A, A.shape[1], b.device, b.dtype)
-            y, t, start, history = x.clone(), 1.0, 1, []
+            self.y, t, start = x.clone(), 1.0, 1
         else:  # continue exactly where state() was taken (x is resume["x"])
             L, t, start = resume["L"], resume["t"], resume["iteration"] + 1
-            y, history = resume["y"].to(x), list(resume["history"])
-        step = 1.0 / max(L, 1e-30)
+            self.y = resume["y"].to(x)
+        self.L, self.step_size = L, 1.0 / max(L, 1e-30)
         # the momentum t lives on the device, so an iteration never waits for the GPU
-        t = torch.tensor(float(t), dtype=torch.float64, device=x.device)
-        converged, it = False, start - 1
-        for it in range(start, self.max_iters + 1):
-            grad_y = A.adjoint(A.forward(y) - b)
-            x_new = (y - step * (grad_y + lam)).clamp_min_(0)
-            if self.restart:  # momentum points uphill: restart
-                t = torch.where(((y - x_new) * (x_new - x)).sum() > 0, 1.0, t)
-            t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t).sqrt())
-            y = x_new + ((t - 1.0) / t_new).to(x.dtype) * (x_new - x)
-            x, t = x_new, t_new
-            if it % self.check_every == 0 or it == self.max_iters:
-                r = A.forward(x) - b
-                primal, gap = duality_gap(problem, x, r, A.adjoint(r))
-                info = {
-                    "objective": primal,
-                    "data": 0.5 * float((r.double() ** 2).sum()),
-                    "l1": lam * float(x.double().sum()),
-                    "gap": gap,
-                    "rel_gap": gap / max(primal, 1e-30),
-                }
-                entry = {"iteration": it, **info}
-                history.append(entry)
-                if callback is not None:
-                    self._state = {"iteration": it, "x": x, "y": y, "t": float(t), "L": L,
-                                   "history": history}
-                    callback(it, x, info)
-                    entry.update(info)  # a callback may add entries (fista_smooth splits the data)
-                if info["rel_gap"] < self.tol:
-                    converged = True
-                    break
-                if self.out_of_time():
-                    break
-        return SolveResult(x, it, 0.0, problem.objective(x), converged, history)
+        self.t = torch.tensor(float(t), dtype=torch.float64, device=x.device)
+        return start
+
+    def step(self, it: int) -> None:
+        A, b, lam = self.problem.A, self.problem.b, self.problem.l1
+        x, y, t = self.x, self.y, self.t
+        grad_y = A.adjoint(A.forward(y) - b)
+        x_new = (y - self.step_size * (grad_y + lam)).clamp_min_(0)
+        if self.restart:  # momentum points uphill: restart
+            t = torch.where(((y - x_new) * (x_new - x)).sum() > 0, 1.0, t)
+        t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t).sqrt())
+        self.y = x_new + ((t - 1.0) / t_new).to(x.dtype) * (x_new - x)
+        self.x, self.t = x_new, t_new
+
+    def report(self, it: int) -> dict[str, float]:
+        problem, x = self.problem, self.x
+        A, b, lam = problem.A, problem.b, problem.l1
+        r = A.forward(x) - b
+        primal, gap = duality_gap(problem, x, r, A.adjoint(r))
+        return {
+            "objective": primal,
+            "data": 0.5 * float((r.double() ** 2).sum()),
+            "l1": lam * float(x.double().sum()),
+            "gap": gap,
+            "rel_gap": gap / max(primal, 1e-30),
+        }
+
+    def snapshot(self, it: int) -> dict:
+        return {"iteration": it, "x": self.x, "y": self.y, "t": float(self.t), "L": self.L,
+                "history": self.history}
+
+    def result(self, problem: Problem) -> tuple[torch.Tensor, float]:
+        return self.x, self.problem.objective(self.x)  # of the problem iterated on (stacked too)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, Problem, SolveResult, power_norm_sq, register
+from .base import Problem, power_norm_sq, register
 from .fista import Fista
 from .smoothness import StackedOperator, hull_gradient
 
@@ -28,7 +28,8 @@ class FistaSmooth(Fista):
             raise ValueError(f"solver.smooth must be >= 0, got {smooth}")
         self.smooth = float(smooth)
 
-    def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
+    def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None) -> int:
+        """FISTA on the stacked problem [A; sqrt(s) D] x ~ [b; 0] from ``x`` (M, C)."""
         if problem.grid_shape is None or problem.voxel_index is None:
             raise ValueError("solver=fista_smooth needs the hull geometry: Problem.grid_shape "
                              "and Problem.voxel_index are not set")
@@ -37,16 +38,16 @@ class FistaSmooth(Fista):
         D = hull_gradient(problem.grid_shape, problem.voxel_index.to(b.device))
         L_D = power_norm_sq(D, D.shape[1], b.device, b.dtype) if D.shape[0] else 0.0
         s = self.smooth * L_A / L_D if L_D > 0 else 0.0
+        self.D, self.s = D, s
         stacked = StackedOperator(A, D, s**0.5)
         b_aug = torch.cat([b, torch.zeros(D.shape[0], b.shape[1], dtype=b.dtype, device=b.device)])
         augmented = Problem(stacked, b_aug, problem.l1)
+        return super().set_up(augmented, x, resume, lipschitz=1.01 * (L_A + s * L_D))
 
-        def report(it: int, xi: torch.Tensor, info: dict) -> None:
-            penalty = 0.5 * s * float((D.forward(xi).double() ** 2).sum())
-            info.update(smooth=penalty, data=info["data"] - penalty, smooth_weight=s)
-            if callback is not None:
-                callback(it, xi, info)
-
-        result = self.iterate(augmented, x, report, lipschitz=1.01 * (L_A + s * L_D))
-        result.objective = augmented.objective(result.x)
-        return result
+    def report(self, it: int) -> dict[str, float]:
+        """FISTA's measures of the stacked problem, its data term split into the fit and the
+        smoothness penalty."""
+        info = super().report(it)
+        penalty = 0.5 * self.s * float((self.D.forward(self.x).double() ** 2).sum())
+        info.update(smooth=penalty, data=info["data"] - penalty, smooth_weight=self.s)
+        return info

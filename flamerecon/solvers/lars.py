@@ -35,7 +35,7 @@ class Lars(Solver):
     bytes and the path up to M steps). A warm start is ignored: the path starts at lambda_max.
     """
 
-    def __init__(self, max_voxels: int = 5000, max_iters: int | None = None, **_: object) -> None:
+    def __init__(self, max_voxels: int = 5000, max_iters: int | None = None) -> None:
         self.max_voxels = int(max_voxels)
         self.max_iters = None if max_iters is None else int(max_iters)
 

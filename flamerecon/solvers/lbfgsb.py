@@ -21,10 +21,11 @@ class _Stop(Exception):
 class Lbfgsb(Solver):
     """Stops when the relative duality gap (checked every ``check_every`` iterations) is below
     ``tol``, after ``max_iters`` iterations or at the first check past ``max_seconds`` (if
-    set); ``memory`` is the number of stored pairs."""
+    set); ``memory`` is the number of stored pairs. scipy drives the iteration, so this
+    solver has its own :meth:`_run`; its checks go through the shared :meth:`_checked`."""
 
     def __init__(self, max_iters: int = 500, tol: float = 1e-4, check_every: int = 10,
-                 memory: int = 10, max_seconds: float | None = None, **_: object) -> None:
+                 memory: int = 10, max_seconds: float | None = None) -> None:
         super().__init__(max_iters, tol, check_every, max_seconds)
         self.memory = int(memory)
 
@@ -46,7 +47,7 @@ class Lbfgsb(Solver):
             f = 0.5 * float((r.double() ** 2).sum()) + lam * float(xt.double().sum())
             return f, (g + lam).double().cpu().numpy().ravel()
 
-        history: list[dict] = []
+        self.history: list[dict] = []
         state = {"it": 0, "converged": False}
 
         def check(z: np.ndarray) -> None:
@@ -64,10 +65,8 @@ class Lbfgsb(Solver):
             info = {"objective": primal, "data": 0.5 * float((r.double() ** 2).sum()),
                     "l1": lam * float(xt.double().sum()), "gap": gap,
                     "rel_gap": gap / max(primal, 1e-30)}
-            if callback is not None:
-                callback(it, xt, info)
-            history.append({"iteration": it, **info})
-            if info["rel_gap"] < self.tol:
+            self.x = xt
+            if self._checked(it, info, callback):
                 state["converged"] = True
                 raise _Stop
             if self.out_of_time():
@@ -89,4 +88,5 @@ class Lbfgsb(Solver):
         except _Stop:
             pass
         x = to_torch(best["z"]).clamp_min(0)
-        return SolveResult(x, state["it"], 0.0, problem.objective(x), state["converged"], history)
+        return SolveResult(x, state["it"], 0.0, problem.objective(x), state["converged"],
+                           self.history)

@@ -13,15 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import (
-    Callback,
-    Problem,
-    Solver,
-    SolveResult,
-    lambda_max,
-    power_norm_sq,
-    register,
-)
+from .base import Problem, Solver, lambda_max, power_norm_sq, register
 from .smoothness import HullGradient
 
 
@@ -72,7 +64,7 @@ class PrimalDualTV(Solver):
 
     def __init__(self, tv: float = 1e-3, max_iters: int = 1000, tol: float = 1e-4,
                  check_every: int = 10, dual_step: float | None = None,
-                 max_seconds: float | None = None, **_: object) -> None:
+                 max_seconds: float | None = None) -> None:
         if float(tv) < 0:
             raise ValueError(f"solver.tv must be >= 0, got {tv}")
         if dual_step is not None and float(dual_step) <= 0:
@@ -82,48 +74,46 @@ class PrimalDualTV(Solver):
         self.dual_step = (max(0.1, (self.tv / 1e-3) ** 0.5) if dual_step is None
                           else float(dual_step))
 
-    def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
+    def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None) -> int:
         if problem.grid_shape is None or problem.voxel_index is None:
             raise ValueError("solver=tv needs the hull geometry: Problem.grid_shape and "
                              "Problem.voxel_index are not set")
-        A, b, lam = problem.A, problem.b, problem.l1
-        D = HullGradient(problem.grid_shape, problem.voxel_index.to(b.device))
-        resume = self._take_resume()
+        A, b = problem.A, problem.b
+        self.problem, self.x = problem, x
+        self.D = D = HullGradient(problem.grid_shape, problem.voxel_index.to(b.device))
         if resume is None:
             L = 1.01 * power_norm_sq(A, A.shape[1], b.device, b.dtype)
             mu = self.tv * lambda_max(A, b)
-            y, start, history = torch.zeros(3, *x.shape, dtype=x.dtype, device=x.device), 1, []
+            self.y, start = torch.zeros(3, *x.shape, dtype=x.dtype, device=x.device), 1
         else:  # continue exactly where state() was taken (x is resume["x"])
             L, mu, start = resume["L"], resume["mu"], resume["iteration"] + 1
-            y, history = resume["y"].to(x), list(resume["history"])
-        sigma = self.dual_step * L / (2.0 * D.norm_sq_bound)
-        tau = 1.0 / (1.01 * (0.5 * L + sigma * D.norm_sq_bound))
-        r = A.forward(x) - b
-        grad = A.adjoint(r)
-        converged, it = False, start - 1
-        for it in range(start, self.max_iters + 1):
-            x_new = (x - tau * (grad + D.adjoint(y) + lam)).clamp_min_(0)
-            y = project_balls(y + sigma * D.forward(2.0 * x_new - x), mu)
-            x = x_new
-            r = A.forward(x) - b
-            grad = A.adjoint(r)
-            if it % self.check_every == 0 or it == self.max_iters:
-                info = self.measure(problem, mu, D, x, y, r, grad)
-                entry = {"iteration": it, **info}
-                history.append(entry)
-                if callback is not None:
-                    self._state = {"iteration": it, "x": x, "y": y, "L": L, "mu": mu,
-                                   "history": history}
-                    callback(it, x, info)
-                    entry.update(info)
-                if info["rel_gap"] < self.tol:
-                    converged = True
-                    break
-                if self.out_of_time():
-                    break
-        tv_value = float(total_variation(D.forward(x)).sum())
-        objective = problem.objective(x) + mu * tv_value
-        return SolveResult(x, it, 0.0, objective, converged, history)
+            self.y = resume["y"].to(x)
+        self.L, self.mu = L, mu
+        self.sigma = self.dual_step * L / (2.0 * D.norm_sq_bound)
+        self.tau = 1.0 / (1.01 * (0.5 * L + self.sigma * D.norm_sq_bound))
+        self.r = A.forward(x) - b
+        self.grad = A.adjoint(self.r)
+        return start
+
+    def step(self, it: int) -> None:
+        A, b, lam, D = self.problem.A, self.problem.b, self.problem.l1, self.D
+        x = self.x
+        x_new = (x - self.tau * (self.grad + D.adjoint(self.y) + lam)).clamp_min_(0)
+        self.y = project_balls(self.y + self.sigma * D.forward(2.0 * x_new - x), self.mu)
+        self.x = x_new
+        self.r = A.forward(x_new) - b
+        self.grad = A.adjoint(self.r)
+
+    def report(self, it: int) -> dict[str, float]:
+        return self.measure(self.problem, self.mu, self.D, self.x, self.y, self.r, self.grad)
+
+    def snapshot(self, it: int) -> dict:
+        return {"iteration": it, "x": self.x, "y": self.y, "L": self.L, "mu": self.mu,
+                "history": self.history}
+
+    def result(self, problem: Problem) -> tuple[torch.Tensor, float]:
+        tv_value = float(total_variation(self.D.forward(self.x)).sum())
+        return self.x, problem.objective(self.x) + self.mu * tv_value
 
     @staticmethod
     def measure(problem: Problem, mu: float, D: HullGradient, x: torch.Tensor, y: torch.Tensor,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, Problem, Solver, SolveResult, register
+from .base import Problem, Solver, register
 
 
 @register("sart")
@@ -24,43 +24,42 @@ class Sart(Solver):
     """
 
     def __init__(self, max_iters: int = 200, tol: float = 1e-5, relax: float = 1.0,
-                 nonneg: bool = True, check_every: int = 10, max_seconds: float | None = None,
-                 **_: object) -> None:
+                 nonneg: bool = True, check_every: int = 10,
+                 max_seconds: float | None = None) -> None:
         if not 0.0 < float(relax) < 2.0:
             raise ValueError(f"solver.relax must lie in (0, 2), got {relax}")
         super().__init__(max_iters, tol, check_every, max_seconds)
         self.relax = float(relax)
         self.nonneg = bool(nonneg)
 
-    def _run(self, problem: Problem, x: torch.Tensor, callback: Callback | None) -> SolveResult:
+    def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None) -> int:
         A, b = problem.A, problem.b
         dtype, device = b.dtype, b.device
+        self.problem, self.x = problem, x
         row_sums = A.forward(torch.ones(A.shape[1], 1, dtype=dtype, device=device))
         col_sums = A.adjoint(torch.ones(A.shape[0], 1, dtype=dtype, device=device))
-        w = torch.where(row_sums > 0, 1.0 / row_sums, torch.zeros_like(row_sums))
-        v = torch.where(col_sums > 0, self.relax / col_sums, torch.zeros_like(col_sums))
-        history: list[dict] = []
-        last = float("inf")
-        converged, it = False, 0
-        r = b - A.forward(x)
-        for it in range(1, self.max_iters + 1):
-            x = x + v * A.adjoint(w * r)
-            if self.nonneg:
-                x.clamp_min_(0)
-            r = b - A.forward(x)
-            if it % self.check_every == 0 or it == self.max_iters:
-                weighted = 0.5 * float((w * r.double() ** 2).sum())
-                data = 0.5 * float((r.double() ** 2).sum())
-                l1 = problem.l1 * float(x.double().abs().sum())
-                info = {"objective": data + l1, "data": data, "l1": l1,
-                        "weighted_residual": weighted}
-                history.append({"iteration": it, **info})
-                if callback is not None:
-                    callback(it, x, info)
-                if last - weighted <= self.tol * last:
-                    converged = True
-                    break
-                if self.out_of_time():
-                    break
-                last = weighted
-        return SolveResult(x, it, 0.0, problem.objective(x), converged, history)
+        self.w = torch.where(row_sums > 0, 1.0 / row_sums, torch.zeros_like(row_sums))
+        self.v = torch.where(col_sums > 0, self.relax / col_sums, torch.zeros_like(col_sums))
+        self.last = float("inf")
+        self.r = b - A.forward(x)
+        return 1
+
+    def step(self, it: int) -> None:
+        A, b = self.problem.A, self.problem.b
+        self.x = self.x + self.v * A.adjoint(self.w * self.r)
+        if self.nonneg:
+            self.x.clamp_min_(0)
+        self.r = b - A.forward(self.x)
+
+    def report(self, it: int) -> dict[str, float]:
+        r = self.r
+        weighted = 0.5 * float((self.w * r.double() ** 2).sum())
+        data = 0.5 * float((r.double() ** 2).sum())
+        l1 = self.problem.l1 * float(self.x.double().abs().sum())
+        return {"objective": data + l1, "data": data, "l1": l1, "weighted_residual": weighted}
+
+    def reached(self, info: dict) -> bool:
+        return self.last - info["weighted_residual"] <= self.tol * self.last
+
+    def after_check(self, info: dict) -> None:
+        self.last = info["weighted_residual"]
