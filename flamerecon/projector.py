@@ -7,7 +7,7 @@ density at its midpoint. Two backends share these samples and agree to float pre
 
 - matrix-free (:class:`MatrixFreeOperator`): ``grid_sample`` on the dense volume, autograd
   for the adjoint; differentiable, memory light, the renderer for full images;
-- assembled (:class:`~flamerecon.sparse_ops.CsrOperator`): the same weights stored once as CSR,
+- assembled (:class:`~flamerecon.operators.CsrOperator`): the same weights stored once as CSR,
   restricted to silhouette rays x hull voxels; fastest for repeated solves.
 """
 
@@ -21,7 +21,7 @@ from kornia.geometry.camera import PinholeCamera
 
 from .cameras import pixel_centers, pixel_rays
 from .grid import VoxelGrid
-from .sparse_ops import CsrOperator
+from .operators.sparse import CsrOperator
 
 #: samples per chunk when marching (bounds memory: about 100 bytes per sample and channel).
 CHUNK_SAMPLES = 4_000_000

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import repo_env
 
 from flamerecon.atomic import (
     atomic_path,
@@ -21,6 +20,7 @@ from flamerecon.atomic import (
     stale_temporaries,
     write_json_atomic,
 )
+from tests.helpers import repo_env
 
 REPO = Path(__file__).resolve().parents[1]
 

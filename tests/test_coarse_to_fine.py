@@ -14,13 +14,12 @@ import numpy as np
 import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-from test_pipeline import CliRun
 
 from flamerecon import pipeline
 from flamerecon.errors import ConfigError, Interrupted, ResumeError, SolveDiverged
 from flamerecon.pipeline import prepare, reconstruct, solve
 from flamerecon.solvers import Solver
-from tests.tiny_scene import tiny_cfg, tiny_synthetic
+from tests.helpers import CliRun, tiny_cfg, tiny_synthetic
 
 #: every solve runs its whole budget (no early stop), no scheduled checkpoints.
 FIXED = ["solver.tol=0", "solver.max_iters=30", "checkpoint.every=0"]

@@ -7,8 +7,8 @@ import json
 import sys
 
 import pytest
-from conftest import REPO
-from test_pipeline import TINY
+
+from tests.helpers import REPO, TINY
 
 sys.path.insert(0, str(REPO / "scripts"))
 import cross_validate

@@ -12,13 +12,11 @@ import sys
 
 import pytest
 import torch
-from conftest import REPO, random_rays, repo_env
-from test_pipeline import TINY
-from test_projector import dot, random_hull
-from test_solvers import csr, tiny_problem
 
+from flamerecon.operators import dottest
 from flamerecon.projector import make_operator
 from flamerecon.solvers import Problem, make_solver
+from tests.helpers import REPO, TINY, csr, random_hull, random_rays, repo_env, tiny_problem
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")
 CUDA = torch.device("cuda")
@@ -36,7 +34,7 @@ def test_operators_on_cuda_match_cpu_and_pass_the_dot_test(box_grid, backend):
     assert Ax.abs().max() > 0
     assert (Ax - cpu.forward(x)).abs().max() <= 1e-5 * Ax.abs().max()
     assert (ATy - cpu.adjoint(y)).abs().max() <= 1e-5 * ATy.abs().max()
-    assert dot(Ax, y) == pytest.approx(dot(x, ATy), rel=1e-5)
+    dottest(gpu, x.to(CUDA), y.to(CUDA), rtol=1e-5)
 
 
 @pytest.mark.parametrize("name", ["fista", "fista_smooth", "tv"])

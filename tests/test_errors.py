@@ -9,7 +9,6 @@ import sys
 import numpy as np
 import pytest
 import torch
-from conftest import repo_env
 from hydra.errors import ConfigCompositionException, MissingConfigException
 from omegaconf import OmegaConf
 
@@ -26,7 +25,7 @@ from flamerecon.pipeline import evaluate, prepare, reconstruct
 from flamerecon.projector import MatrixFreeOperator
 from flamerecon.runner import run_task
 from flamerecon.scenes import SceneError
-from tests.tiny_scene import REPO, TINY, defective, tiny_cfg, tiny_synthetic
+from tests.helpers import FAST, REPO, TINY, defective, repo_env, tiny_cfg, tiny_synthetic
 
 # (config overrides, error type, pattern the message must match)
 CASES = {
@@ -138,7 +137,7 @@ def test_debug_shows_the_exception_instead_of_exiting(tmp_path):
 def test_train_py_prints_one_line_and_exits_2(tmp_path):
     env = repo_env()
     proc = subprocess.run(
-        [sys.executable, str(REPO / "train.py"), *TINY, "holdout=[cam99]", f"hydra.run.dir={tmp_path}"],
+        [sys.executable, str(REPO / "train.py"), *TINY, *FAST, "holdout=[cam99]", f"hydra.run.dir={tmp_path}"],
         capture_output=True, text=True, env=env, timeout=300, check=False,
     )
     assert proc.returncode == 2, proc.stderr

@@ -10,7 +10,6 @@ import math
 import pytest
 import torch
 from omegaconf import OmegaConf
-from test_pipeline import tiny_config
 
 from flamerecon.cameras import cameras_to
 from flamerecon.evaluation import masked_scores, native_scene, render_support, silhouette_union
@@ -18,6 +17,7 @@ from flamerecon.grid import VoxelGrid
 from flamerecon.pipeline import evaluate, reconstruct, summary_table
 from flamerecon.projector import render_image
 from flamerecon.scenes import load_scene
+from tests.helpers import tiny_config
 
 NATIVE = ["psnr_native", "ssim_native", "psnr_black_native"]
 

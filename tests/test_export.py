@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import repo_env
 
 from flamerecon.export import (
     DensityFileError,
@@ -28,6 +27,7 @@ from flamerecon.export import (
     write_vti,
 )
 from flamerecon.grid import VoxelGrid
+from tests.helpers import repo_env
 
 REPO = Path(__file__).resolve().parents[1]
 needs_vtk = pytest.mark.skipif(find_spec("vtkmodules") is None,

@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import repo_env
 
 from flamerecon.cameras import camera_centers, project_points
 from flamerecon.export import save_density
@@ -36,6 +35,7 @@ from flamerecon.figures import (
     write_mp4,
     write_png,
 )
+from tests.helpers import repo_env
 
 REPO = Path(__file__).resolve().parents[1]
 LO = np.array([0.0, 0.0, 0.0])

@@ -6,9 +6,9 @@ import sys
 
 import numpy as np
 import pytest
-from test_pipeline import REPO, TINY
 
 from flamerecon.sequence import assemble_sweep
+from tests.helpers import REPO, TINY
 
 
 def test_three_frames_through_joblib_then_vtk(tmp_path):

@@ -10,11 +10,11 @@ import math
 
 import pytest
 from omegaconf import OmegaConf
-from test_pipeline import tiny_config
 
 from flamerecon.pipeline import reconstruct
 from flamerecon.scenes import SCENE_LOADERS, register_scene
 from flamerecon.scenes.synthetic import load as load_synthetic
+from tests.helpers import tiny_config
 
 
 @functools.lru_cache(maxsize=1)

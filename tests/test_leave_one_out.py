@@ -7,12 +7,11 @@ import json
 import runpy
 
 import pytest
-from conftest import REPO
-from test_pipeline import TINY, tiny_config
 
 from flamerecon.leave_one_out import leave_one_out
 from flamerecon.pipeline import reconstruct
 from flamerecon.scenes import SceneError
+from tests.helpers import REPO, TINY, tiny_config
 
 main = runpy.run_path(str(REPO / "scripts" / "leave_one_out.py"))["main"]
 

@@ -5,16 +5,14 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from conftest import repo_env
-
 from flamerecon.runner import FAILED_FILE
-from tests.tiny_scene import REPO, TINY
+from tests.helpers import FAST, REPO, TINY, repo_env
 
 
 def test_failed_job_does_not_stop_the_sweep(tmp_path):
     env = repo_env()
     proc = subprocess.run(
-        [sys.executable, str(REPO / "train.py"), "--multirun", *TINY, "solver.max_iters=5",
+        [sys.executable, str(REPO / "train.py"), "--multirun", *TINY, *FAST, "solver.max_iters=5",
          "holdout=[cam99],[cam01]", f"hydra.sweep.dir={tmp_path}"],
         capture_output=True, text=True, env=env, timeout=300, check=False,
     )

@@ -1,5 +1,5 @@
 """End to end on a tiny synthetic flame: the real Hydra config, shrunk; the run folder's
-contract (DESIGN.md); TensorBoard's own reader; ``python train.py`` as a user runs it;
+contract (README, "The run folder"); TensorBoard's own reader; ``python train.py`` as a user runs it;
 ``scripts/evaluate.py`` reproducing the run's numbers; bad holdouts refused by name."""
 
 from __future__ import annotations
@@ -7,59 +7,17 @@ from __future__ import annotations
 import json
 import math
 import runpy
-import subprocess
 import sys
 
 import cv2
 import numpy as np
 import pytest
-from conftest import REPO, repo_env
-from hydra import compose, initialize_config_dir
 from tensorboard.backend.event_processing import event_accumulator as ea
 
 from flamerecon.pipeline import evaluate, reconstruct
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.synthetic import ring_cameras
-
-#: smaller still, for runs that only have to start (bad input) or compare two backends.
-SMALLER = ["scene.width=24", "scene.height=18", "scene.phantom_resolution=16", "grid.resolution=8"]
-
-#: the real config shrunk to seconds: 5 cameras at 48x36, a 32-cell phantom, a 16-cell grid.
-TINY = [
-    "scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",
-    "grid.resolution=16", "solver.max_iters=30", "log.eval_every=10", "device=cpu",
-]
-VIEWS = [f"cam{i:02d}" for i in range(5)]
-HELDOUT, TRAIN = ["cam04"], VIEWS[:4]  # the scene's default holdout: the last camera
-
-
-def tiny_config(*overrides: str):
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return compose(config_name="train", overrides=[*TINY, *overrides])
-
-
-class CliRun:
-    """``python train.py TINY... overrides... hydra.run.dir=RUN_DIR`` from the repo root, as a
-    user types it, in a subprocess."""
-
-    def __init__(self, run_dir, *overrides: str):
-        self.run_dir = run_dir
-        env = repo_env()
-        self.args = [sys.executable, "train.py", *TINY, *overrides, f"hydra.run.dir={run_dir}"]
-        self.proc = subprocess.Popen(self.args, cwd=REPO, env=env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
-        self._done: subprocess.CompletedProcess | None = None
-
-    def result(self) -> subprocess.CompletedProcess:
-        if self._done is None:
-            out, err = self.proc.communicate(timeout=300)
-            self._done = subprocess.CompletedProcess(self.args, self.proc.returncode, out, err)
-        return self._done
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.communicate()
+from tests.helpers import HELDOUT, REPO, SMALLER, TRAIN, VIEWS, CliRun, tiny_config
 
 
 @pytest.fixture(scope="module")

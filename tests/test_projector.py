@@ -13,10 +13,10 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
-from conftest import random_rays, ring_of_cameras
 
 from flamerecon.cameras import pixel_centers, pixel_rays
 from flamerecon.grid import VoxelGrid
+from flamerecon.operators import CsrOperator
 from flamerecon.projector import (
     MatrixFreeOperator,
     Rays,
@@ -29,7 +29,7 @@ from flamerecon.projector import (
     render_image,
     support_box,
 )
-from flamerecon.sparse_ops import CsrOperator
+from tests.helpers import random_hull, random_rays, ring_of_cameras
 
 
 def axis_rays(grid: VoxelGrid, axis: int, sign: float, transverse: torch.Tensor) -> Rays:
@@ -54,21 +54,11 @@ def interior_points(grid: VoxelGrid, axis: int, n: int, seed: int = 0) -> torch.
     return lo + size / 2 + torch.rand(n, 2, generator=g) * (hi - lo - size)
 
 
-def random_hull(grid: VoxelGrid, fraction: float = 0.4, seed: int = 0) -> torch.Tensor:
-    """A random subset of flat voxel indices, sorted (M,)."""
-    g = torch.Generator().manual_seed(seed)
-    return (torch.rand(grid.num_voxels, generator=g) < fraction).nonzero().squeeze(1)
-
-
 def both_backends(grid, rays, voxel_index, step=0.5):
     return {
         "assembled": make_operator("assembled", grid, rays, voxel_index, step),
         "matrix_free": make_operator("matrix_free", grid, rays, voxel_index, step),
     }
-
-
-def dot(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a.double() * b.double()).sum())
 
 
 # --------------------------------------------------------------------------- analytic integrals
@@ -142,21 +132,6 @@ def test_gaussian_blob_matches_its_analytic_line_integral_and_converges():
 
 
 # --------------------------------------------------------------------------- adjoint and backends
-
-
-@pytest.mark.parametrize("backend", ["assembled", "matrix_free"])
-def test_dot_test_proves_the_adjoint(box_grid, backend):
-    rays = random_rays(box_grid, 300)
-    voxel_index = random_hull(box_grid)
-    op = make_operator(backend, box_grid, rays, voxel_index)
-    N, M = op.shape
-    assert (N, M) == (300, voxel_index.numel())
-    g = torch.Generator().manual_seed(1)
-    x, y = torch.rand(M, 3, generator=g), torch.randn(N, 3, generator=g)
-    Ax, ATy = op.forward(x), op.adjoint(y)
-    assert Ax.shape == (N, 3) and ATy.shape == (M, 3)
-    assert dot(Ax, Ax) > 0  # the rays do see the hull
-    assert dot(Ax, y) == pytest.approx(dot(x, ATy), rel=1e-5)
 
 
 def test_assembled_and_matrix_free_agree_forward_and_adjoint(box_grid):

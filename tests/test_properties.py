@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from flamerecon.cameras import intrinsics_matrix, look_at, make_cameras
 from flamerecon.grid import VoxelGrid
 from flamerecon.hull import visual_hull
+from flamerecon.operators import dottest
 from flamerecon.projector import MatrixFreeOperator, assemble, camera_rays, render_image
 
 # whole numbers too, so that rays parallel to the box's faces (zero direction components) occur
@@ -61,9 +62,7 @@ def test_projector_and_hull_are_total_and_finite(case):
         assert ax.shape == (len(rays), 2) and aty.shape == (grid.num_voxels, 2)
         assert torch.isfinite(ax).all() and torch.isfinite(aty).all()
         assert (ax >= 0).all()  # nonnegative density, nonnegative weights
-        # dot test: <A x, y> == <x, A^T y>
-        lhs, rhs = float((ax.double() * y).sum()), float((x.double() * aty).sum())
-        assert abs(lhs - rhs) <= 1e-4 * max(1.0, abs(lhs))
+        dottest(op, x, y, rtol=1e-4, atol=1e-4)  # <A x, y> == <x, A^T y>
 
     image = render_image(x.T.reshape(2, *grid.shape).contiguous(), grid, cams)
     assert image.shape == (cams.batch_size, 2, H, W) and torch.isfinite(image).all()

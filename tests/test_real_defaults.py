@@ -3,11 +3,11 @@ working resolution) while the command line still wins and the synthetic defaults
 
 from __future__ import annotations
 
-from conftest import REPO
 from hydra import compose, initialize_config_dir
 
 from flamerecon.pipeline import solver_options
 from flamerecon.solvers import make_solver
+from tests.helpers import REPO
 
 
 def composed(*overrides: str):

@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import repo_env
 from omegaconf import OmegaConf
 
 from flamerecon import pipeline
@@ -23,7 +22,7 @@ from flamerecon.errors import Interrupted, SolveDiverged
 from flamerecon.pipeline import reconstruct
 from flamerecon.runner import FAILED_FILE, run_task
 from flamerecon.solvers import SOLVERS, Solver, SolveResult, register
-from tests.tiny_scene import REPO, TINY, tiny_cfg
+from tests.helpers import FAST, REPO, TINY, repo_env, tiny_cfg
 
 SOLVE = ["grid.resolution=12", "solver.tol=0", "checkpoint.every=10"]
 
@@ -59,7 +58,7 @@ def test_sigint_then_resume_matches_uninterrupted_run(tmp_path):
     run = tmp_path / "run"
     env = repo_env()
     child = subprocess.Popen(
-        [sys.executable, "-c", _CHILD, str(REPO / "train.py"), *TINY, *SOLVE, *overrides,
+        [sys.executable, "-c", _CHILD, str(REPO / "train.py"), *TINY, *FAST, *SOLVE, *overrides,
          f"hydra.run.dir={run}"],
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -109,8 +108,9 @@ def test_adam_resumes_exactly_from_its_optimizer_state(tmp_path, monkeypatch):
 class _BlowsUp(Solver):
     """A gradient step that works for a while, then turns to NaN at iteration ``nan_at``."""
 
-    def __init__(self, max_iters: int = 40, nan_at: int = 25, **_: object):
-        self.max_iters, self.nan_at = max_iters, nan_at
+    def __init__(self, nan_at: int = 25, **budget):
+        super().__init__(**budget)
+        self.nan_at = nan_at
 
     def _run(self, problem, x, callback):
         A, b = problem.A, problem.b

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from synthetic_views import write_png, write_video
 
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.frames import (
@@ -14,6 +13,7 @@ from flamerecon.scenes.frames import (
     read_video_frame,
     video_length,
 )
+from tests.helpers.views import write_png, write_video
 
 T, H, W = 5, 24, 32
 

@@ -9,7 +9,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from synthetic_views import (
+
+from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w
+from flamerecon.scenes import SceneError
+from flamerecon.scenes.nerf import load_nerf
+from tests.helpers.views import (
     HEIGHT,
     NAMES,
     WIDTH,
@@ -18,10 +22,6 @@ from synthetic_views import (
     ring_cameras,
     write_png,
 )
-
-from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w
-from flamerecon.scenes import SceneError
-from flamerecon.scenes.nerf import load_nerf
 
 FL_X, FL_Y, CX, CY = 47.0, 45.5, 21.25, 15.75
 BOX = [[-0.5, -0.4, -0.6], [0.6, 0.5, 0.4]]

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from synthetic_views import NAMES, as_float, random_images, ring_cameras, write_png
 
 from flamerecon.cameras import K_of
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.opencv_calib import load_opencv
+from tests.helpers.views import NAMES, as_float, random_images, ring_cameras, write_png
 
 FRAME = 2
 H, W = 32, 40

@@ -11,7 +11,13 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from synthetic_views import (
+
+from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w, project_points
+from flamerecon.grid import VoxelGrid
+from flamerecon.scenes import SceneError
+from flamerecon.scenes.pinf import load_pinf
+from flamerecon.silhouettes import estimate_bbox, silhouettes
+from tests.helpers.views import (
     BOX,
     HEIGHT,
     NAMES,
@@ -23,12 +29,6 @@ from synthetic_views import (
     write_png,
     write_video,
 )
-
-from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w, project_points
-from flamerecon.grid import VoxelGrid
-from flamerecon.scenes import SceneError
-from flamerecon.scenes.pinf import load_pinf
-from flamerecon.silhouettes import estimate_bbox, silhouettes
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "scalarflow_real"
 if not REAL.is_dir():

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import repo_env
 
 from flamerecon.export import save_density
 from flamerecon.sequence import SweepError, assemble_sweep, find_frame_runs, flatten_metrics
+from tests.helpers import repo_env
 
 REPO = Path(__file__).resolve().parents[1]
 needs_vtk = pytest.mark.skipif(find_spec("vtkmodules") is None,

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from synthetic_views import ring_cameras
 
 from flamerecon.cameras import make_cameras, project_points
 from flamerecon.silhouettes import estimate_bbox, otsu_threshold, silhouettes
+from tests.helpers.views import ring_cameras
 
 H, W = 48, 64
 

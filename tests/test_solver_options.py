@@ -6,13 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from conftest import REPO
 from hydra import compose, initialize_config_dir
 
 from flamerecon.pipeline import solver_options
 from flamerecon.runner import run_task
 from flamerecon.solvers import SOLVERS, make_solver
-from tests.tiny_scene import tiny_cfg
+from tests.helpers import REPO, tiny_cfg
 
 SOLVER_CONFIGS = sorted(p.stem for p in (REPO / "conf" / "solver").glob("*.yaml"))
 

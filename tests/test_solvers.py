@@ -9,37 +9,9 @@ import pytest
 import torch
 
 from flamerecon.solvers import Problem, make_solver
-from flamerecon.sparse_ops import CsrOperator
+from tests.helpers import csr, objective, sklearn_objective, tiny_problem
 
-sklearn_linear = pytest.importorskip("sklearn.linear_model")
-
-
-def tiny_problem(seed: int = 0, N: int = 80, M: int = 60, C: int = 2, rel: float = 0.05):
-    """A nonnegative sparse A (N, M), sparse nonnegative truth, noisy b (N, C), lambda."""
-    g = np.random.default_rng(seed)
-    A = (g.random((N, M)) * (g.random((N, M)) < 0.3)).astype(np.float32)
-    truth = (g.random((M, C)) * (g.random((M, C)) < 0.3)).astype(np.float32)
-    b = A @ truth + 0.01 * g.standard_normal((N, C)).astype(np.float32)
-    lam = rel * float(np.abs(A.T @ b).max())
-    return A, b, lam
-
-
-def csr(A: np.ndarray) -> CsrOperator:
-    r, c = np.nonzero(A)
-    return CsrOperator.from_coo(torch.tensor(r), torch.tensor(c), torch.tensor(A[r, c]), A.shape)
-
-
-def objective(A: np.ndarray, b: np.ndarray, lam: float, x: np.ndarray) -> float:
-    A, b, x = A.astype(np.float64), b.astype(np.float64), x.astype(np.float64)
-    return float(0.5 * ((A @ x - b) ** 2).sum() + lam * np.abs(x).sum())
-
-
-def sklearn_objective(A: np.ndarray, b: np.ndarray, lam: float) -> float:
-    """scikit-learn minimises (1/2N)||b - A w||^2 + alpha ||w||_1: alpha = lam / N."""
-    lasso = sklearn_linear.Lasso(alpha=lam / A.shape[0], positive=True, fit_intercept=False,
-                                 tol=1e-12, max_iter=100_000)
-    lasso.fit(A.astype(np.float64), b.astype(np.float64))
-    return objective(A, b, lam, lasso.coef_.T.reshape(A.shape[1], -1))
+pytest.importorskip("sklearn.linear_model")
 
 
 @pytest.fixture(scope="module")

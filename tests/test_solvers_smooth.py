@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from flamerecon.operators import CsrOperator, hull_gradient
 from flamerecon.solvers import Problem, make_solver
-from flamerecon.solvers.smoothness import hull_gradient
-from flamerecon.sparse_ops import CsrOperator
 
 scipy_optimize = pytest.importorskip("scipy.optimize")
 

@@ -4,9 +4,9 @@ import json
 
 import numpy as np
 import pytest
-from test_pipeline import tiny_config
 
 from flamerecon.pipeline import reconstruct
+from tests.helpers import tiny_config
 
 
 def first_objective(run_dir) -> float:

@@ -1,6 +1,6 @@
 """Adam on the nonnegative LASSO by autograd through the operator's forward (the
 differentiable-renderer route: works for any operator whose ``forward`` torch can differentiate,
-e.g. the matrix-free projector or :class:`~flamerecon.sparse_ops.CsrOperator`)."""
+e.g. the matrix-free projector or :class:`~flamerecon.operators.CsrOperator`)."""
 
 from __future__ import annotations
 

@@ -16,19 +16,10 @@ import inspect
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import torch
 
-
-class LinearOperator(Protocol):
-    """A linear map from voxels (M, C) to pixels (N, C) with its adjoint."""
-
-    shape: tuple[int, int]  # (N, M)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor: ...
-
-    def adjoint(self, y: torch.Tensor) -> torch.Tensor: ...
+from ..operators.base import LinearOperator, norm_sq
 
 
 @dataclass
@@ -267,18 +258,11 @@ def make_solver(name: str, **options) -> Solver:
 
 
 def power_norm_sq(A: LinearOperator, M: int, device, dtype=torch.float32, iters: int = 30, seed: int = 0) -> float:
-    """Estimate ||A||_2^2 (largest eigenvalue of A^T A) by power iteration."""
-    g = torch.Generator(device="cpu").manual_seed(seed)
-    v = torch.rand(M, 1, generator=g, dtype=dtype).to(device)
-    v /= v.norm()
-    lam = 0.0
-    for _ in range(iters):
-        w = A.adjoint(A.forward(v))
-        lam = float(w.norm())
-        if lam == 0.0:
-            return 0.0
-        v = w / lam
-    return lam
+    """Estimate ||A||_2^2 (largest eigenvalue of A^T A) by power iteration, cached on ``A``
+    (:func:`flamerecon.operators.norm_sq`; ``M`` is ``A.shape[1]``)."""
+    if M != A.shape[1]:
+        raise ValueError(f"power_norm_sq: M={M} but the operator has {A.shape[1]} columns")
+    return norm_sq(A, device, dtype, iters, seed)
 
 
 def density_scale(A: LinearOperator, b: torch.Tensor) -> torch.Tensor:

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import torch
 
+from ..operators import StackedOperator, hull_gradient
 from .base import Problem, power_norm_sq, register
 from .fista import Fista
-from .smoothness import StackedOperator, hull_gradient
 
 
 @register("fista_smooth")

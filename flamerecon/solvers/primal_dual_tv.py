@@ -4,7 +4,7 @@ of Condat (2013) and Vu (2013):
     min_x  0.5||A x - b||^2 + l1 sum(x) + mu TV(x),   x >= 0,
 
 per colour channel, with TV(x) = sum_m sqrt(sum_a (D x)_{a,m}^2) the isotropic total variation
-of the forward differences D (see :class:`~.smoothness.HullGradient`; none across the hull
+of the forward differences D (see :class:`~flamerecon.operators.HullGradient`; none across the hull
 boundary). The data term enters through its gradient, L1 + nonnegativity through its prox (a
 shifted clamp) and TV through its dual, so only A.forward and A.adjoint are needed.
 """
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import torch
 
+from ..operators import HullGradient
 from .base import Problem, Solver, lambda_max, power_norm_sq, register
-from .smoothness import HullGradient
 
 
 def total_variation(d: torch.Tensor) -> torch.Tensor:

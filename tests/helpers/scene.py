@@ -1,14 +1,12 @@
-"""A tiny synthetic scene (5 cameras, 48x36), generated once per test session and registered as
-``scene.name=defective``, with ``++scene.defect=NAME`` breaking one thing in it; and the tiny
-config that uses it."""
+"""The tiny config's synthetic scene (5 cameras, 48x36), generated once per test session and
+registered as ``scene.name=defective``, with ``++scene.defect=NAME`` breaking one thing in it;
+and :func:`tiny_cfg`, the tiny config on it with the :data:`~.config.FAST` solve."""
 
 from __future__ import annotations
 
 import functools
-from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
 from kornia.geometry.camera import PinholeCamera
 from omegaconf import OmegaConf
 
@@ -16,16 +14,13 @@ from flamerecon.scenes import SCENE_LOADERS, register_scene
 from flamerecon.scenes.synthetic import load as load_synthetic
 from flamerecon.silhouettes import silhouettes
 
-REPO = Path(__file__).resolve().parents[1]
-TINY = ["scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",
-        "grid.resolution=16", "solver.max_iters=10", "log.eval_every=0"]
+from .config import FAST, tiny_config
 
 
 def tiny_cfg(*overrides: str):
-    """The tiny config; its scene is the cached tiny synthetic one (``defective(...)`` breaks it)."""
-    scene = ["scene.name=defective", "++scene.defect=none"]
-    with initialize_config_dir(str(REPO / "conf"), version_base="1.3"):
-        return compose("train", overrides=[*TINY, *scene, *overrides])
+    """The tiny config with the FAST solve on the cached tiny synthetic scene (the one TINY
+    describes; ``defective(...)`` breaks it)."""
+    return tiny_config(*FAST, "scene.name=defective", "++scene.defect=none", *overrides)
 
 
 @functools.lru_cache(maxsize=1)

@@ -1,0 +1,85 @@
+"""What every operator offers: the :class:`LinearOperator` protocol, the dot test that proves an
+adjoint, and the operator norm by power iteration, computed once per operator."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import torch
+
+
+class LinearOperator(Protocol):
+    """A linear map from voxels (M, C) to pixels (N, C) with its adjoint.
+
+    Operators are immutable: :func:`norm_sq` caches its result on the operator.
+    """
+
+    shape: tuple[int, int]  # (N, M)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor: ...
+
+    def adjoint(self, y: torch.Tensor) -> torch.Tensor: ...
+
+
+def _dot(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a.double() * b.double()).sum())
+
+
+def dottest(op: LinearOperator, x: torch.Tensor | None = None, y: torch.Tensor | None = None,
+            channels: int = 3, rtol: float = 1e-5, atol: float = 0.0, seed: int = 0,
+            dtype: torch.dtype = torch.float32, device=None) -> tuple[float, float]:
+    """The dot test: <A x, y> against <x, A^T y>, summed in float64.
+
+    ``x`` (M, C) defaults to uniform [0, 1) and ``y`` (shaped like A x) to standard normal
+    values, drawn from ``seed`` in ``dtype`` on ``device``. Returns the two products; raises
+    ValueError when they differ by more than max(``atol``, ``rtol`` * the larger of them).
+    """
+    g = torch.Generator().manual_seed(seed)
+    if x is None:
+        x = torch.rand(op.shape[1], channels, generator=g, dtype=dtype).to(device)
+    ax = op.forward(x)
+    if y is None:
+        y = torch.randn(ax.shape, generator=g, dtype=dtype).to(ax.device)
+    lhs, rhs = _dot(ax, y), _dot(x, op.adjoint(y))
+    if abs(lhs - rhs) > max(atol, rtol * max(abs(lhs), abs(rhs))):
+        raise ValueError(f"dottest: <A x, y> = {lhs:.9g} but <x, A^T y> = {rhs:.9g} "
+                         f"(rtol {rtol:g}, atol {atol:g}): the adjoint is not that of forward")
+    return lhs, rhs
+
+
+def norm_sq(op: LinearOperator, device=None, dtype: torch.dtype = torch.float32,
+            iters: int = 30, seed: int = 0) -> float:
+    """||A||_2^2 (largest eigenvalue of A^T A) by ``iters`` power iterations from a uniform
+    random start drawn from ``seed``, in ``dtype`` on ``device``. Cached on the operator per
+    (device, dtype, iters, seed), so that a second solve on the same operator does not pay for
+    it again."""
+    key = (str(torch.device(device)) if device is not None else None, dtype, int(iters), int(seed))
+    cache = getattr(op, "_norm_sq_cache", None)
+    if cache is None:
+        cache = {}
+        try:
+            op._norm_sq_cache = cache
+        except AttributeError:  # an operator without instance attributes: no cache
+            pass
+    if key not in cache:
+        cache[key] = _power_iteration(op, device, dtype, iters, seed)
+    return cache[key]
+
+
+def norm(op: LinearOperator, **options) -> float:
+    """||A||_2, the square root of :func:`norm_sq` (same options, same cache)."""
+    return norm_sq(op, **options) ** 0.5
+
+
+def _power_iteration(op: LinearOperator, device, dtype: torch.dtype, iters: int, seed: int) -> float:
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    v = torch.rand(op.shape[1], 1, generator=g, dtype=dtype).to(device)
+    v /= v.norm()
+    lam = 0.0
+    for _ in range(iters):
+        w = op.adjoint(op.forward(v))
+        lam = float(w.norm())
+        if lam == 0.0:
+            return 0.0
+        v = w / lam
+    return lam

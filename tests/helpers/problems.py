@@ -1,0 +1,49 @@
+"""Tiny nonnegative LASSO problems and their references, for the solver and operator tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from flamerecon.operators import CsrOperator
+
+
+def tiny_problem(seed: int = 0, N: int = 80, M: int = 60, C: int = 2, rel: float = 0.05):
+    """A nonnegative sparse A (N, M), sparse nonnegative truth, noisy b (N, C), lambda."""
+    g = np.random.default_rng(seed)
+    A = (g.random((N, M)) * (g.random((N, M)) < 0.3)).astype(np.float32)
+    truth = (g.random((M, C)) * (g.random((M, C)) < 0.3)).astype(np.float32)
+    b = A @ truth + 0.01 * g.standard_normal((N, C)).astype(np.float32)
+    lam = rel * float(np.abs(A.T @ b).max())
+    return A, b, lam
+
+
+def csr(A: np.ndarray) -> CsrOperator:
+    r, c = np.nonzero(A)
+    return CsrOperator.from_coo(torch.tensor(r), torch.tensor(c), torch.tensor(A[r, c]), A.shape)
+
+
+def objective(A: np.ndarray, b: np.ndarray, lam: float, x: np.ndarray) -> float:
+    A, b, x = A.astype(np.float64), b.astype(np.float64), x.astype(np.float64)
+    return float(0.5 * ((A @ x - b) ** 2).sum() + lam * np.abs(x).sum())
+
+
+def sklearn_objective(A: np.ndarray, b: np.ndarray, lam: float) -> float:
+    """scikit-learn minimises (1/2N)||b - A w||^2 + alpha ||w||_1: alpha = lam / N."""
+    from sklearn.linear_model import Lasso
+
+    lasso = Lasso(alpha=lam / A.shape[0], positive=True, fit_intercept=False, tol=1e-12,
+                  max_iter=100_000)
+    lasso.fit(A.astype(np.float64), b.astype(np.float64))
+    return objective(A, b, lam, lasso.coef_.T.reshape(A.shape[1], -1))
+
+
+def random_coo(seed: int = 0, N: int = 50, M: int = 40, nnz: int = 300):
+    """A CsrOperator from random COO triplets with duplicates, and its dense (N, M) matrix."""
+    g = np.random.default_rng(seed)
+    rows, cols = g.integers(0, N, nnz), g.integers(0, M, nnz)  # duplicates on purpose
+    vals = g.random(nnz).astype(np.float32)
+    dense = np.zeros((N, M), np.float32)
+    np.add.at(dense, (rows, cols), vals)
+    op = CsrOperator.from_coo(torch.tensor(rows), torch.tensor(cols), torch.tensor(vals), (N, M))
+    return op, dense
