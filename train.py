@@ -1,22 +1,11 @@
-"""Reconstruct a flame: ``python train.py [key=value ...]`` (Hydra; see conf/train.yaml).
+"""Reconstruct a flame: ``python train.py [key=value ...]``, the same command as ``flamerecon``
+(:mod:`flamerecon.train`; Hydra, see conf/train.yaml).
 
 Bad input ends in one line naming the file and field (exit status 2; ``debug=true`` for the
 traceback); ``resume=RUN_DIR`` continues an interrupted run in its folder.
 """
 
-import hydra
-from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
-from omegaconf import DictConfig
-
-
-@hydra.main(version_base="1.3", config_path="conf", config_name="train")
-def main(cfg: DictConfig) -> float | None:
-    from flamerecon.runner import run_task
-
-    hc = HydraConfig.get()
-    return run_task(cfg, hc.runtime.output_dir, multirun=hc.mode == RunMode.MULTIRUN)
-
+from flamerecon.train import main
 
 if __name__ == "__main__":
     main()

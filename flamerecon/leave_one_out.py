@@ -16,13 +16,9 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from .atomic import write_json_atomic
+from .device import resolve_device
 from .evaluation import render_scene_views, score_views, silhouette_union, write_renders
-from .pipeline import (
-    prepare,
-    resolve_device,
-    solve,
-    warm_start,
-)
+from .pipeline import prepare, solve, warm_start
 from .scenes import Scene, SceneError, load_scene
 
 #: the per-view numbers averaged into the table's last row.

@@ -27,6 +27,7 @@ from .checks import (
     explain_empty_hull,
     memory_budget,
 )
+from .device import resolve_device
 from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
 from .evaluation import native_scores, render_scene_views, score, score_views, write_renders
 from .export import export_run, load_density, save_density
@@ -44,15 +45,6 @@ from .solvers import SOLVERS, Problem, Solver, SolveResult, make_solver, resolve
 from .tb_logging import RunWriter, side_by_side
 
 log = logging.getLogger(__name__)
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when present, else CPU; ``cpu``/``cuda`` as asked."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: 'cuda' was asked for but torch sees no CUDA device; use device=auto or cpu")
-    return torch.device(name)
 
 
 @dataclass
@@ -216,12 +208,6 @@ def hull_values(volume: torch.Tensor, grid: VoxelGrid, voxel_index: torch.Tensor
     A warm start: cells the density is zero on (e.g. outside a coarser level's hull) start at 0."""
     vol = resample_to(volume, grid.shape).to(voxel_index.device)
     return vol.reshape(vol.shape[0], -1)[:, voxel_index].T.contiguous()
-
-
-def initial_guess(path: str | Path, grid: VoxelGrid, voxel_index: torch.Tensor) -> torch.Tensor:
-    """Hull values (M, C) from a finished run's density (warm start, e.g. from the previous
-    frame of a video), averaged onto ``grid`` when its resolution differs."""
-    return hull_values(init_volume(path, grid), grid, voxel_index)
 
 
 def level_config(cfg: DictConfig, max_iters: int | None, cell_ratio: float) -> DictConfig:

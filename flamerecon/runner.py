@@ -11,13 +11,14 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import traceback
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from .atomic import atomic_write_text
 from .errors import FlameReconError, Interrupted
@@ -42,19 +43,41 @@ def script_error(err: Exception, debug: bool) -> int:
     return getattr(err, "exit_code", 2)
 
 
-def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False) -> float | None:
+def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
+    """Make a relative ``scene.root`` that names something under ``start`` (the folder the
+    command was started in; Hydra may have changed the working directory since) absolute, in
+    place; other roots are left to :func:`~flamerecon.scenes.calibration.resolve_root`."""
+    scene = cfg.get("scene")
+    if scene is None or "root" not in scene or OmegaConf.is_missing(scene, "root"):
+        return
+    root = scene.get("root")
+    if root is None or str(root) == "":
+        return
+    path = Path(os.path.expanduser(str(root)))
+    if not path.is_absolute() and (Path(start) / path).exists():
+        scene.root = str((Path(start) / path).resolve())
+
+
+def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
+             cwd: str | Path | None = None) -> float | None:
     """Reconstruct (or resume, with ``resume=RUN_DIR``) and print the summary; returns the mean
-    held-out PSNR, or None for a multirun job that failed."""
+    held-out PSNR, or None for a multirun job that failed. ``cwd`` is the folder the command
+    was started in, against which relative paths resolve (default: the working directory)."""
     from .pipeline import flat_metrics, reconstruct, run_config, summary_table
 
     debug = bool(cfg.get("debug", False))
+    start = Path.cwd() if cwd is None else Path(cwd)
     try:
         if cfg.get("resume"):
             run_dir = Path(str(cfg.resume))
+            if not run_dir.is_absolute():
+                run_dir = start / run_dir
             cfg = run_config(run_dir)
+            anchor_scene_root(cfg, start)
             metrics = reconstruct(cfg, run_dir, resume=True)
             (run_dir / FAILED_FILE).unlink(missing_ok=True)
         else:
+            anchor_scene_root(cfg, start)
             metrics = reconstruct(cfg, run_dir)
     except FlameReconError as err:
         if debug:

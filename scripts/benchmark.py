@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from flamerecon.device import resolve_device
 from flamerecon.grid import VoxelGrid
 from flamerecon.hull import visual_hull
 from flamerecon.projector import assemble, camera_rays
@@ -309,9 +310,7 @@ def main() -> None:
     parser.add_argument("--out", default="benchmark.json")
     parser.add_argument("--dump", default=None, help="folder for A.npz, problem.npz, benchmark.json")
     args = parser.parse_args()
-    if args.device == "auto":
-        args.device = "cuda" if torch.cuda.is_available() else "cpu"
-    device = torch.device(args.device)
+    device = resolve_device(args.device, "--device")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     machine = {"platform": platform.platform(), "processor": platform.processor(),

@@ -20,15 +20,13 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
 from hydra import compose, initialize_config_dir
 from hydra.errors import HydraException
 
 from flamerecon.atomic import write_json_atomic
 from flamerecon.errors import FlameReconError
 from flamerecon.leave_one_out import leave_one_out
+from flamerecon.resources import config_dir
 from flamerecon.runner import script_error
 from flamerecon.scenes import load_scene
 
@@ -51,7 +49,7 @@ def score_setting(overrides: list[str], averages: list[list[str]], exclude: list
     ``--average`` combination and their mean."""
     parts = {}
     for extra in averages or [[]]:
-        with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name="train", overrides=[*overrides, *extra])
         label = " ".join(extra) or "all"
         folder = out / f"{len(parts):02d}"

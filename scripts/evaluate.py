@@ -16,8 +16,6 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from flamerecon.errors import FlameReconError
 from flamerecon.pipeline import evaluate, summary_table
 from flamerecon.runner import script_error

@@ -15,14 +15,12 @@ import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
 from hydra import compose, initialize_config_dir
 from hydra.errors import HydraException
 
 from flamerecon.errors import FlameReconError
 from flamerecon.leave_one_out import leave_one_out, loo_table
+from flamerecon.resources import config_dir
 from flamerecon.runner import script_error
 
 
@@ -40,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     out = args.out or Path("outputs/loo") / time.strftime("%Y-%m-%d") / time.strftime("%H-%M-%S")
     try:
-        with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name="train", overrides=args.overrides)
         record = leave_one_out(
             cfg, out, names(args.views), names(args.exclude),

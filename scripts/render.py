@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from flamerecon.cameras import make_cameras
+from flamerecon.device import resolve_device
 from flamerecon.export import DensityFileError, load_density
 from flamerecon.figures import (
     framing_distance,
@@ -126,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def render(args: argparse.Namespace) -> list[Path]:
     density, lo, hi, _ = load_density(args.run_dir)
-    device = ("cuda" if torch.cuda.is_available() else "cpu") if args.device == "auto" else args.device
+    device = resolve_device(args.device, "--device")
     volume = torch.from_numpy(density).to(device)
     out = args.out or args.run_dir / "renders"
     out.mkdir(parents=True, exist_ok=True)

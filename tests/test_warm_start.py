@@ -43,10 +43,10 @@ def test_evaluate_script_reports_a_missing_run_folder_in_one_line(tmp_path):
     import subprocess
     import sys
 
-    from test_pipeline import REPO
+    from tests.helpers import REPO, repo_env
 
     proc = subprocess.run([sys.executable, "scripts/evaluate.py", str(tmp_path / "none")],
-                          check=False, cwd=REPO, capture_output=True, text=True)
+                          check=False, cwd=REPO, capture_output=True, text=True, env=repo_env())
     assert proc.returncode == 2
     assert "flamerecon: error:" in proc.stderr and "config.yaml: not found" in proc.stderr
     assert "Traceback" not in proc.stderr

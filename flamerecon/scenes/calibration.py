@@ -17,11 +17,9 @@ import torch
 
 from ..cameras import make_cameras
 from ..photometry import linearize
+from ..resources import checkout_root
 from ..silhouettes import estimate_bbox, silhouettes
 from .base import Scene, SceneError
-
-#: repository root (the folder holding ``flamerecon/``), against which relative roots resolve.
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def option(cfg, key: str, default=None):
@@ -33,9 +31,10 @@ def option(cfg, key: str, default=None):
 def resolve_root(root, field: str = "scene.root") -> Path:
     """The data folder (or file) named by ``root``.
 
-    An absolute path is taken as is. A relative one is tried against the directory the command
-    was started in (Hydra's original cwd), then against the repository root, then, when it
-    starts with ``../shared``, against ``/work/shared``'s parent (a worktree's sibling layout).
+    An absolute path is taken as is. A relative one is tried against the working directory
+    (the run layer, :func:`flamerecon.runner.anchor_scene_root`, has already made absolute a
+    root found under the folder the command was started in), then against the repository root
+    when the package runs from a checkout.
     """
     if root is None or str(root) == "":
         raise SceneError(f"config: {field}: no data folder given")
@@ -43,17 +42,8 @@ def resolve_root(root, field: str = "scene.root") -> Path:
     if path.is_absolute():
         candidates = [path]
     else:
-        starts = []
-        try:
-            from hydra.utils import get_original_cwd
-
-            starts.append(Path(get_original_cwd()))
-        except (ImportError, ValueError):
-            pass
-        starts += [Path.cwd(), REPO_ROOT]
-        candidates = [s / path for s in starts]
-        if path.parts[:2] == ("..", "shared"):
-            candidates.append(Path("/work") / Path(*path.parts[1:]))
+        checkout = checkout_root()
+        candidates = [Path.cwd() / path] + ([checkout / path] if checkout is not None else [])
     for candidate in candidates:
         if candidate.exists():
             return candidate.resolve()

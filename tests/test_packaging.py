@@ -1,0 +1,66 @@
+"""``pip install .`` ships a working package: every package folder and the configs are in the
+wheel, and its ``flamerecon`` command reconstructs the tiny flame from outside the checkout."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import venv
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from flamerecon.resources import checkout_root, config_dir
+from tests.helpers import FAST, REPO, TINY
+
+tomllib = pytest.importorskip("tomllib")
+
+
+def test_the_package_list_names_every_package_folder_and_the_configs():
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "flamerecon").rglob("__init__.py")}
+    assert listed == folders | {"flamerecon.conf"}
+
+
+def test_a_checkout_reads_its_top_level_configs():
+    assert checkout_root() == REPO
+    assert config_dir() == REPO / "conf" and (config_dir() / "train.yaml").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
+def test_the_wheel_installs_and_its_command_runs_outside_the_checkout(tmp_path):
+    source, wheels = tmp_path / "source", tmp_path / "wheels"  # a clean copy: no stale build/
+    for name in ("flamerecon", "conf"):
+        shutil.copytree(REPO / name, source / name, ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, source / name)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                    "-w", str(wheels), str(source)], check=True, capture_output=True, cwd=tmp_path)
+    (wheel,) = wheels.glob("flamerecon-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    shipped = {n for n in names if n.startswith("flamerecon/conf/")}
+    expected = {f"flamerecon/conf/{p.relative_to(REPO / 'conf').as_posix()}"
+                for p in (REPO / "conf").rglob("*.yaml")}
+    assert shipped == expected
+    env_dir = tmp_path / "venv"  # the dependencies come from this interpreter's site-packages
+    venv.create(env_dir, system_site_packages=True, with_pip=True)
+    bin_dir = env_dir / ("Scripts" if sys.platform == "win32" else "bin")
+    subprocess.run([str(bin_dir / "python"), "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
+                   check=True, capture_output=True, cwd=tmp_path)
+    where = subprocess.run(
+        [str(bin_dir / "python"), "-c", ("import flamerecon.resources as r; "
+                                         "print(r.PACKAGE, r.config_dir(), r.checkout_root())")],
+        check=True, capture_output=True, text=True, cwd=tmp_path).stdout.split()
+    assert Path(where[0]).is_relative_to(env_dir) and where[1] == str(Path(where[0]) / "conf")
+    assert where[2] == "None"
+    run = tmp_path / "run"
+    proc = subprocess.run([str(bin_dir / "flamerecon"), *TINY, *FAST, f"hydra.run.dir={run}"],
+                          check=False, capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["solver"]["iterations"] == 10 and (run / "density.npz").is_file()
+    assert (run / "train.log").is_file()  # the job keeps the name it had as python train.py
