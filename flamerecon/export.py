@@ -1,6 +1,6 @@
 """The density file of a run (``density.npz``) and its exports for other tools.
 
-``density.npz`` is the source of truth (DESIGN.md): ``density`` float32 (C, nz, ny, nx), x varies
+``density.npz`` is the source of truth (README, "The run folder"): ``density`` float32 (C, nz, ny, nx), x varies
 fastest; ``bbox_min`` and ``bbox_max`` world xyz (3,); ``views`` the names of the views fitted.
 Voxel (k, j, i) is the cell whose corner nearest ``bbox_min`` is ``bbox_min + (i, j, k) * size``
 with ``size = (bbox_max - bbox_min) / (nx, ny, nz)``; its value sits at the cell centre. Every

@@ -192,6 +192,8 @@ def test_a_diverging_coarse_level_stops_the_run_by_name(tmp_path):
     assert not (run / "density.npz").exists()
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_train_py_with_levels_end_to_end(tmp_path):
     run = tmp_path / "run"
     cli = CliRun(run, "grid.levels=[4,8]", "grid.level_iters=[20,10]", "threads=1")

@@ -14,6 +14,7 @@ sys.path.insert(0, str(REPO / "scripts"))
 import cross_validate
 
 
+@pytest.mark.slow
 def test_cross_validation_never_fits_the_excluded_view_and_averages_its_folds(tmp_path, capsys):
     out = tmp_path / "cv"
     code = cross_validate.main([*TINY, "--exclude", "cam04", "--sweep", "solver.l1_rel=0,0.3",

@@ -51,6 +51,8 @@ def test_a_solve_on_cuda_reaches_the_cpu_objective(name):
     assert objectives[1] == pytest.approx(objectives[0], rel=1e-5)
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_train_py_on_cuda_scores_like_the_cpu_run(tmp_path):
     scores = {}
     for device in ("cpu", "cuda"):

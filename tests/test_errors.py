@@ -81,6 +81,7 @@ def test_bad_input_message(case, tmp_path):
     assert not (tmp_path / "run" / "density.npz").exists()
 
 
+@pytest.mark.slow
 def test_auto_backend_falls_back_to_matrix_free_when_assembled_would_not_fit():
     cfg = tiny_cfg("projector.max_memory_gb=0.001")
     setup = prepare(cfg, tiny_synthetic(), torch.device("cpu"))
@@ -134,6 +135,8 @@ def test_debug_shows_the_exception_instead_of_exiting(tmp_path):
     assert "unknown view 'cam99'" in (tmp_path / "FAILED").read_text()
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_train_py_prints_one_line_and_exits_2(tmp_path):
     env = repo_env()
     proc = subprocess.run(

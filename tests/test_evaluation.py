@@ -90,6 +90,7 @@ def test_training_writes_the_silhouette_scores_but_not_the_native_ones(half_run)
     assert not set(NATIVE) & set(held)
 
 
+@pytest.mark.slow
 def test_evaluate_scores_the_heldout_view_at_native_resolution(half_run):
     metrics = evaluate(half_run, device="cpu")
     assert metrics["resolution"] == {"working": [24, 18], "native": [48, 36]}

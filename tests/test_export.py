@@ -212,6 +212,7 @@ def test_raw_read_back_with_numpy_fromfile(tmp_path):
 # --- a run's exports through the script --------------------------------------------------------
 
 
+@pytest.mark.e2e
 @needs_vtk
 def test_export_script_writes_all_formats_into_run_dir(tmp_path):
     pytest.importorskip("nrrd")
@@ -226,6 +227,7 @@ def test_export_script_writes_all_formats_into_run_dir(tmp_path):
     np.testing.assert_array_equal(arrays["G"], vol[1].reshape(-1))
 
 
+@pytest.mark.e2e
 def test_export_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="density.npz"):
         export_run(tmp_path, ["raw"])

@@ -232,6 +232,8 @@ def _run_render(*args) -> subprocess.CompletedProcess:
                           check=False, capture_output=True, text=True, env=env)
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_render_script_orbit_calibration_turntable_figures(tmp_path):
     pytest.importorskip("matplotlib")
     save_density(tmp_path / "density.npz", _off_centre_blob(10).repeat(3, 1, 1, 1), *BOX, ["a"])

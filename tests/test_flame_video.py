@@ -11,6 +11,8 @@ from flamerecon.sequence import assemble_sweep
 from tests.helpers import REPO, TINY
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_three_frames_through_joblib_then_vtk(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     vtk = pytest.importorskip("vtk")

@@ -48,6 +48,7 @@ def relative_gain(cams: list[dict], name: str) -> float:
         sum(map(math.log, others)) / len(others))
 
 
+@pytest.mark.slow
 def test_a_camera_recorded_brighter_gets_that_gain(tmp_path):
     cams = fitted(tmp_path / "ten", 1.3, "photometry.rounds=10")
     assert relative_gain(cams, "cam01") == pytest.approx(1.3, rel=0.03)
@@ -61,6 +62,7 @@ def test_a_camera_recorded_brighter_gets_that_gain(tmp_path):
     assert 1.0 < one < relative_gain(cams, "cam01")
 
 
+@pytest.mark.slow
 def test_consistent_cameras_keep_gains_near_one_and_fitting_is_off_by_default(tmp_path):
     cams = fitted(tmp_path / "fit", 1.0, "photometry.rounds=2")
     assert all(c["gain"] == pytest.approx(1.0, abs=0.05) for c in cams)

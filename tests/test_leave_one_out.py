@@ -16,6 +16,7 @@ from tests.helpers import REPO, TINY, tiny_config
 main = runpy.run_path(str(REPO / "scripts" / "leave_one_out.py"))["main"]
 
 
+@pytest.mark.slow
 def test_the_command_holds_out_each_view_and_prints_the_table_with_the_mean(tmp_path, capsys):
     assert main(["--out", str(tmp_path), *TINY, "log.eval_every=0"]) == 0
     out = capsys.readouterr().out
@@ -32,6 +33,7 @@ def test_the_command_holds_out_each_view_and_prints_the_table_with_the_mean(tmp_
     assert f"mean           {mean:.2f}" in out
 
 
+@pytest.mark.slow
 def test_a_fold_matches_the_train_run_with_that_holdout_and_excluded_views_stay_out(tmp_path):
     cfg = tiny_config("log.eval_every=0")
     record = leave_one_out(cfg, tmp_path / "loo", views=["cam01"], exclude=["cam04"])

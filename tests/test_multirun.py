@@ -5,10 +5,14 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from flamerecon.runner import FAILED_FILE
 from tests.helpers import FAST, REPO, TINY, repo_env
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_failed_job_does_not_stop_the_sweep(tmp_path):
     env = repo_env()
     proc = subprocess.run(

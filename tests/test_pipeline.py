@@ -28,9 +28,14 @@ def composed_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="module", autouse=True)
-def cli_runs(tmp_path_factory):
+def cli_runs(request, tmp_path_factory):
     """``python train.py`` with fista and with adam, started in the background when this
-    module's first test starts, so that they run while the in-process tests do."""
+    module's first test starts, so that they run while the in-process tests do (not started
+    when no command-line test of this module is selected, e.g. under ``-m "not e2e"``)."""
+    if not any(item.module is request.module and item.get_closest_marker("e2e")
+               for item in request.session.items):
+        yield {}
+        return
     base = tmp_path_factory.mktemp("cli")
     runs = {name: CliRun(base / name, f"solver={name}") for name in ("fista", "adam")}
     yield runs
@@ -63,6 +68,7 @@ def check_metrics_schema(metrics: dict, solver: str) -> None:
 # --------------------------------------------------------------------------- run folder
 
 
+@pytest.mark.slow
 def test_metrics_json_is_what_reconstruct_returns_and_follows_the_schema(composed_run):
     run_dir, metrics = composed_run
     on_disk = json.loads((run_dir / "metrics.json").read_text())
@@ -73,6 +79,7 @@ def test_metrics_json_is_what_reconstruct_returns_and_follows_the_schema(compose
         assert per_view["psnr"] > per_view["psnr_black"] + 5
 
 
+@pytest.mark.slow
 def test_density_npz_holds_the_volume_its_box_and_the_training_views(composed_run):
     run_dir, _ = composed_run
     with np.load(run_dir / "density.npz") as f:
@@ -84,6 +91,7 @@ def test_density_npz_holds_the_volume_its_box_and_the_training_views(composed_ru
     assert views.tolist() == TRAIN
 
 
+@pytest.mark.slow
 def test_cameras_json_lists_every_camera_with_its_calibration_and_split(composed_run):
     run_dir, _ = composed_run
     cams = json.loads((run_dir / "cameras.json").read_text())["cameras"]
@@ -100,6 +108,7 @@ def test_cameras_json_lists_every_camera_with_its_calibration_and_split(composed
         assert np.allclose(E[3], [0, 0, 0, 1])
 
 
+@pytest.mark.slow
 def test_renders_show_each_heldout_view_rendered_captured_and_error(composed_run):
     run_dir, _ = composed_run
     assert sorted(p.name for p in (run_dir / "renders").iterdir()) == ["cam04.png"]
@@ -113,6 +122,7 @@ def test_renders_show_each_heldout_view_rendered_captured_and_error(composed_run
     assert np.abs(error - np.clip(4 * np.abs(rendered - captured), 0, 255)).max() <= 4
 
 
+@pytest.mark.slow
 def test_tensorboard_reader_finds_scalars_and_images(composed_run):
     run_dir, metrics = composed_run
     acc = ea.EventAccumulator(str(run_dir), size_guidance={ea.SCALARS: 0, ea.IMAGES: 0})
@@ -134,6 +144,8 @@ def test_tensorboard_reader_finds_scalars_and_images(composed_run):
 # --------------------------------------------------------------------------- the command line
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_train_py_runs_as_a_subprocess_and_prints_the_table(cli_run):
     run_dir, proc = cli_run
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -148,12 +160,16 @@ def test_train_py_runs_as_a_subprocess_and_prints_the_table(cli_run):
     assert (run_dir / "density.npz").is_file() and (run_dir / "renders" / "cam04.png").is_file()
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_the_subprocess_run_matches_the_composed_run(cli_run, composed_run):
     (run_dir, _), (_, metrics) = cli_run, composed_run
     on_disk = json.loads((run_dir / "metrics.json").read_text())
     assert on_disk["heldout"]["cam04"]["psnr"] == pytest.approx(metrics["heldout"]["cam04"]["psnr"], abs=1e-3)
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_evaluate_reproduces_the_heldout_psnr_of_a_finished_run(cli_run, capsys):
     run_dir, proc = cli_run
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -183,6 +199,8 @@ def test_evaluate_names_a_folder_that_is_not_a_run(tmp_path):
         evaluate(tmp_path)
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_adam_runs_through_the_command_line(cli_runs):
     run = cli_runs["adam"]
     proc = run.result()
@@ -213,6 +231,7 @@ def test_holdout_takes_names_indices_and_negative_indices(small_scene):
     assert small_scene.split("3") == ([0, 1, 2, 4, 5], [3])
 
 
+@pytest.mark.slow
 def test_both_backends_reconstruct_the_same_volume(tmp_path):
     runs = {}
     for backend in ("matrix_free", "assembled"):

@@ -53,6 +53,8 @@ def _density(run: Path) -> np.ndarray:
         return f["density"]
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_sigint_then_resume_matches_uninterrupted_run(tmp_path):
     overrides = ["solver=fista", "solver.max_iters=100", "solver.check_every=5"]
     run = tmp_path / "run"
@@ -83,6 +85,7 @@ def test_sigint_then_resume_matches_uninterrupted_run(tmp_path):
     assert metrics["solver"]["iterations"] == 100 and metrics["solver"]["status"] == "finished"
 
 
+@pytest.mark.slow
 def test_adam_resumes_exactly_from_its_optimizer_state(tmp_path, monkeypatch):
     overrides = ["solver=adam", "solver.max_iters=30", "solver.check_every=5"]
     original = pipeline.Monitor.__call__
@@ -123,6 +126,7 @@ class _BlowsUp(Solver):
         return SolveResult(x, self.max_iters, 0.0, problem.objective(x), False)
 
 
+@pytest.mark.slow
 def test_nan_stops_the_solve_and_keeps_the_last_good_iterate(tmp_path):
     assert "test_blows_up" in SOLVERS
     run = tmp_path / "run"

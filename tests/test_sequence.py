@@ -53,6 +53,7 @@ def _metrics(frame: int) -> dict:
             "ssim": 0.9}}, "train": {"psnr": 35.0}}
 
 
+@pytest.mark.e2e
 @needs_vtk
 def test_assemble_script_on_three_frames(tmp_path):
     sweep = tmp_path / "multirun"
@@ -168,6 +169,8 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 @needs_vtk
 def test_joblib_multirun_then_assemble(tmp_path):
     """The sequence workflow end to end with Hydra's joblib launcher and a stand-in app."""

@@ -20,6 +20,7 @@ def lasso_case():
     return A, b, lam, sklearn_objective(A, b, lam)
 
 
+@pytest.mark.slow
 def test_fista_reaches_sklearn_objective(lasso_case):
     A, b, lam, ref = lasso_case
     res = make_solver("fista", tol=1e-5, max_iters=5000).solve(Problem(csr(A), torch.tensor(b), lam))
@@ -28,6 +29,7 @@ def test_fista_reaches_sklearn_objective(lasso_case):
     assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-4 * ref
 
 
+@pytest.mark.slow
 def test_adam_reaches_sklearn_objective(lasso_case):
     A, b, lam, ref = lasso_case
     problem = Problem(csr(A), torch.tensor(b), lam)

@@ -256,6 +256,8 @@ def test_bad_weights_and_missing_geometry_are_refused(tmp_path):
         make_solver("tv").solve(Problem(csr(A), torch.tensor(b), lam))
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_train_py_runs_solver_tv_and_logs_the_tv_term_and_weight(tmp_path):
     run = tmp_path / "run"
     proc = subprocess.run([sys.executable, "train.py", *TINY, *FAST, "solver=tv", "solver.tv=0.05",

@@ -17,6 +17,7 @@ def first_objective(run_dir) -> float:
     return acc.Scalars("solve/objective")[0].value
 
 
+@pytest.mark.slow
 def test_warm_start_from_a_finished_run_starts_lower(tmp_path):
     cold = tmp_path / "cold"
     reconstruct(tiny_config("log.eval_every=0"), cold)
@@ -32,6 +33,7 @@ def test_warm_start_from_a_finished_run_starts_lower(tmp_path):
     assert json.loads((warm / "metrics.json").read_text())["solver"]["iterations"] > 0
 
 
+@pytest.mark.slow
 def test_warm_start_refuses_a_different_box(tmp_path):
     cold = tmp_path / "cold"
     reconstruct(tiny_config("log.eval_every=0", "solver.max_iters=5"), cold)
@@ -39,6 +41,8 @@ def test_warm_start_refuses_a_different_box(tmp_path):
         reconstruct(tiny_config("grid.bbox=[[-1,0,-1],[1,2,1]]", f"init={cold}"), tmp_path / "w")
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_evaluate_script_reports_a_missing_run_folder_in_one_line(tmp_path):
     import subprocess
     import sys
