@@ -3,15 +3,18 @@ solver takes is an error naming it and the valid ones (exit status 2 at the run 
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
+from flamerecon.operators import norm_sq
 from flamerecon.pipeline import solver_options
 from flamerecon.runner import run_task
-from flamerecon.solvers import SOLVERS, make_solver
-from tests.helpers import REPO, tiny_cfg
+from flamerecon.solvers import SOLVERS, Problem, make_solver
+from tests.helpers import REPO, csr, tiny_cfg, tiny_problem
 
 SOLVER_CONFIGS = sorted(p.stem for p in (REPO / "conf" / "solver").glob("*.yaml"))
 
@@ -44,6 +47,19 @@ def test_every_solver_config_instantiates_strictly(name):
 def test_every_solver_of_the_package_has_a_config():
     names = {composed(f"solver={n}").solver.name for n in SOLVER_CONFIGS}
     assert {n for n, cls in SOLVERS.items() if cls.__module__.startswith("flamerecon.")} <= names
+
+
+def test_fista_iterate_is_its_solve_untimed_with_a_given_lipschitz_constant():
+    A, b, lam = tiny_problem()
+    problem = Problem(csr(A), torch.tensor(b), lam)
+    solved = make_solver("fista", max_iters=40, tol=0.0).solve(problem)
+    warm = make_solver("fista", max_iters=40, tol=0.0)
+    warm._started = time.perf_counter()
+    L = 1.01 * norm_sq(problem.A, problem.b.device, problem.b.dtype)
+    iterated = warm.iterate(problem, torch.zeros_like(solved.x), None, lipschitz=L)
+    assert torch.equal(iterated.x, solved.x) and iterated.iterations == solved.iterations == 40
+    doubled = warm.iterate(problem, torch.zeros_like(solved.x), None, lipschitz=2 * L)
+    assert not torch.equal(doubled.x, solved.x)  # the constant given is the one used
 
 
 def test_a_misspelt_solver_key_exits_2_with_one_line(tmp_path: Path, capsys):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Problem, Solver, duality_gap, power_norm_sq, register
+from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
 
 
 @register("fista")
@@ -21,11 +21,24 @@ class Fista(Solver):
         super().__init__(max_iters, tol, check_every, max_seconds)
         self.restart = bool(restart)
 
+    _lipschitz: float | None = None  # from iterate(), for its one run
+
+    def iterate(self, problem: Problem, x: torch.Tensor, callback: Callback | None,
+                lipschitz: float | None = None) -> SolveResult:
+        """FISTA from ``x`` (M, C) as :meth:`solve` runs it but untimed (for a solver that starts
+        with FISTA steps); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
+        self._lipschitz = lipschitz
+        try:
+            return self._run(problem, x, callback)
+        finally:
+            self._lipschitz = None
+
     def set_up(self, problem: Problem, x: torch.Tensor, resume: dict | None,
                lipschitz: float | None = None) -> int:
         """FISTA from ``x`` (M, C); ``lipschitz`` >= ||A||^2 if known (else power iteration)."""
         A, b = problem.A, problem.b
         self.problem, self.x = problem, x
+        lipschitz = self._lipschitz if lipschitz is None else lipschitz
         if resume is None:
             L = lipschitz if lipschitz is not None else 1.01 * power_norm_sq(
                 A, A.shape[1], b.device, b.dtype)
