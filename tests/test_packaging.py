@@ -1,8 +1,10 @@
 """``pip install .`` ships a working package: every package folder and the configs are in the
-wheel, and its ``flamerecon`` command reconstructs the tiny flame from outside the checkout."""
+wheel, and its ``flamerecon`` command reconstructs the tiny flame from outside the checkout;
+relative data paths resolve without Hydra and without machine-specific folders."""
 
 from __future__ import annotations
 
+import inspect
 import json
 import shutil
 import subprocess
@@ -12,8 +14,12 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 
 from flamerecon.resources import checkout_root, config_dir
+from flamerecon.runner import anchor_scene_root
+from flamerecon.scenes import SceneError, calibration
+from flamerecon.scenes.calibration import resolve_root
 from tests.helpers import FAST, REPO, TINY
 
 tomllib = pytest.importorskip("tomllib")
@@ -64,3 +70,20 @@ def test_the_wheel_installs_and_its_command_runs_outside_the_checkout(tmp_path):
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["solver"]["iterations"] == 10 and (run / "density.npz").is_file()
     assert (run / "train.log").is_file()  # the job keeps the name it had as python train.py
+
+
+def test_a_relative_scene_root_resolves_against_where_the_command_started(tmp_path, monkeypatch):
+    (tmp_path / "data").mkdir()
+    cfg = OmegaConf.create({"scene": {"name": "x", "root": "data"}})
+    anchor_scene_root(cfg, tmp_path)
+    assert cfg.scene.root == str((tmp_path / "data").resolve())
+    for root in ("elsewhere", "???", None):  # not under the start, missing, none: left as they are
+        cfg = OmegaConf.create({"scene": {"name": "x", "root": root}})
+        anchor_scene_root(cfg, tmp_path)
+        assert OmegaConf.to_container(cfg)["scene"]["root"] == root
+    monkeypatch.chdir(tmp_path)
+    assert resolve_root("data") == (tmp_path / "data").resolve()  # then the working directory
+    assert resolve_root("conf") == REPO / "conf"  # then the checkout
+    with pytest.raises(SceneError, match=r"scene.root: 'nowhere' does not exist \(tried .*nowhere, .*nowhere\)"):
+        resolve_root("nowhere")
+    assert "hydra" not in inspect.getsource(calibration)
