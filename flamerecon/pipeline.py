@@ -20,6 +20,7 @@ from .atomic import write_json_atomic
 from .cameras import K_of, camera_subset, cameras_to
 from .checkpoint import CHECKPOINT_FILE, load_checkpoint
 from .checks import (
+    check_density_fits,
     check_grid_memory,
     check_scene,
     check_silhouettes,
@@ -36,8 +37,10 @@ from .guard import SolveGuard, StopSolve, stop_signals
 from .hull import visual_hull
 from .levels import level_grids, level_iters
 from .metrics import resample_to
+from .options_check import check_options
 from .photometry import fit_gain_offset_rows, normalize_gains
 from .projector import camera_rays, make_operator
+from .run_lock import run_lock
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
 from .solvers import SOLVERS, Problem, Solver, SolveResult, make_solver, resolve_l1
@@ -46,13 +49,20 @@ from .tb_logging import RunWriter, side_by_side
 log = logging.getLogger(__name__)
 
 
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when present, else CPU; ``cpu``/``cuda`` as asked."""
+def resolve_device(name: str, field: str = "device") -> torch.device:
+    """``auto`` -> CUDA when present, else CPU; ``cpu``/``cuda``/``cuda:N`` as asked
+    (ConfigError naming ``field`` for a device that is not there)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device: 'cuda' was asked for but torch sees no CUDA device; use device=auto or cpu")
-    return torch.device(name)
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise ConfigError(f"{field}: '{name}' is not a device ({err}); use auto, cpu or cuda") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"{field}: '{name}' was asked for but torch sees no CUDA device; use auto or cpu")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise ConfigError(f"{field}: '{name}': torch sees only {torch.cuda.device_count()} CUDA device(s)")
+    return device
 
 
 @dataclass
@@ -396,6 +406,15 @@ def solver_options(cfg: DictConfig) -> dict:
 
 
 def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
+    """:func:`reconstruct_in` after checking every option of ``cfg``
+    (:func:`~flamerecon.options_check.check_options`), holding ``run_dir``'s lock
+    (:func:`~flamerecon.run_lock.run_lock`: a second writer is refused)."""
+    check_options(OmegaConf.to_container(cfg, resolve=True))
+    with run_lock(run_dir):
+        return reconstruct_in(cfg, run_dir, resume)
+
+
+def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
     """Run the whole pipeline for ``cfg`` and write the run folder; returns metrics.json's dict.
 
     With ``grid.levels`` the coarse grids are solved first (:func:`coarse_levels`), each logged
@@ -681,15 +700,19 @@ def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> 
     views are also scored at the capture's native resolution (``scene.downscale=1``)."""
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
-    saved = load_density(run_dir / "density.npz")
-    scene = load_scene(cfg.scene)
-    train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
-    lo, hi = tuple(saved.bbox_min.tolist()), tuple(saved.bbox_max.tolist())
-    nz, ny, nx = saved.density.shape[1:]
-    grid = VoxelGrid(lo, hi, (nx, ny, nz))
-    volume = torch.from_numpy(saved.density).to(resolve_device(device))
-    with np.load(run_dir / "density.npz") as f:
-        solver_info = json.loads(str(f["solver"])) if "solver" in f.files else {}
-    metrics, _ = finish(cfg, run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step),
-                        solver_info, read_photometry(run_dir), native)
+    torch_device = resolve_device(device, "--device")
+    with run_lock(run_dir):
+        saved = load_density(run_dir / "density.npz")
+        scene = load_scene(cfg.scene)
+        train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
+        lo, hi = tuple(saved.bbox_min.tolist()), tuple(saved.bbox_max.tolist())
+        nz, ny, nx = saved.density.shape[1:]
+        grid = VoxelGrid(lo, hi, (nx, ny, nz))
+        check_density_fits(run_dir / "density.npz", saved, scene, scene_grid(cfg, scene),
+                           run_dir / ".hydra" / "config.yaml")
+        volume = torch.from_numpy(saved.density).to(torch_device)
+        with np.load(run_dir / "density.npz") as f:
+            solver_info = json.loads(str(f["solver"])) if "solver" in f.files else {}
+        metrics, _ = finish(cfg, run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step),
+                            solver_info, read_photometry(run_dir), native)
     return metrics

@@ -12,31 +12,28 @@ each PSNR beside that of an all-black image (the floor).
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flamerecon.errors import FlameReconError
+from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.pipeline import evaluate, summary_table
-from flamerecon.runner import script_error
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a run folder written by train.py")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda")
     parser.add_argument("--no-native", dest="native", action="store_false",
                         help="skip the native-resolution scores (loading full-size frames)")
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
-    try:
+
+    def score() -> None:
         metrics = evaluate(args.run_dir, device=args.device, native=args.native)
-    except (FlameReconError, FileNotFoundError) as err:
-        return script_error(err, args.debug)
-    print(f"{args.run_dir}\n{summary_table(metrics)}")
-    return 0
+        print(f"{args.run_dir}\n{summary_table(metrics)}")
+
+    return run_script(score, args.debug)
 
 
 if __name__ == "__main__":

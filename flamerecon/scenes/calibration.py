@@ -19,6 +19,7 @@ from ..cameras import make_cameras
 from ..photometry import linearize
 from ..silhouettes import estimate_bbox, silhouettes
 from .base import Scene, SceneError
+from .frames import is_link_loop
 
 #: repository root (the folder holding ``flamerecon/``), against which relative roots resolve.
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -57,6 +58,9 @@ def resolve_root(root, field: str = "scene.root") -> Path:
     for candidate in candidates:
         if candidate.exists():
             return candidate.resolve()
+        if is_link_loop(candidate):
+            raise SceneError(f"config: {field}: '{root}' is a symbolic link loop ({candidate} leads back "
+                             "to itself); point it at the data folder")
     tried = ", ".join(str(c) for c in dict.fromkeys(candidates))
     raise SceneError(f"config: {field}: '{root}' does not exist (tried {tried})")
 
