@@ -26,7 +26,8 @@ if __name__ == "__main__":
         main()
     except SystemExit as stop:
         if stop.code == 1:  # Hydra refused the command line (unknown key or group, bad syntax)
-            print("flamerecon: error: config: the command line was refused (Hydra's message above); "
-                  "python train.py --help lists the config groups, --cfg job the keys", file=sys.stderr)
+            print("flamerecon: error: config: the command line was refused (Hydra's message "
+                  "above); python train.py --help lists the config groups, --cfg job the keys",
+                  file=sys.stderr)
             raise SystemExit(2) from None
         raise

@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .atomic import write_json_atomic
 from .evaluation import render_scene_views, score_views, silhouette_union, write_renders
+from .options_check import check_options
 from .pipeline import (
     prepare,
     resolve_device,
@@ -37,6 +38,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     ``views`` {name: scores, iterations, seconds, l1, train}, ``mean`` over views of
     :data:`AVERAGED`, ``exclude``, ``config``. ``progress(name, row)`` is called per view.
     ``scene`` is ``cfg.scene`` already loaded (loaded here when None)."""
+    check_options(OmegaConf.to_container(cfg, resolve=True))
     out_dir = Path(out_dir)
     device = resolve_device(cfg.device)
     scene = load_scene(cfg.scene) if scene is None else scene

@@ -45,7 +45,8 @@ def _quoted_number(value) -> bool:
 
 def integer(lo: int | None = None, hi: int | None = None) -> Check:
     """An int (or an integral float, as ``1e3`` parses) in [lo, hi]."""
-    want = "an integer" + (f" >= {lo}" if lo is not None else "") + (f" <= {hi}" if hi is not None else "")
+    want = ("an integer" + (f" >= {lo}" if lo is not None else "")
+            + (f" <= {hi}" if hi is not None else ""))
 
     def check(value):
         if not _is_number(value) or not math.isfinite(value) or int(value) != value:
@@ -142,8 +143,8 @@ RULES: dict[str, Rule] = {
     "grid.bbox": Rule(_box, null=True),
     "grid.levels": Rule(list_of(_resolution, what="a list of grid sizes (ints or [nx, ny, nz])"),
                         null=True),
-    "grid.level_iters": Rule(either(integer(1), list_of(integer(1), what="a list of integers >= 1")),
-                             null=True),
+    "grid.level_iters": Rule(
+        either(integer(1), list_of(integer(1), what="a list of integers >= 1")), null=True),
     "projector.backend": Rule(choice("auto", "assembled", "matrix_free")),
     "projector.step": Rule(number(0, lo_open=True)),
     "projector.max_memory_gb": Rule(number(0, lo_open=True), null=True),
@@ -254,6 +255,7 @@ def check_options(config: dict) -> None:
         if wrong is not None:
             raise ConfigError(f"{key}: {wrong}")
     name = flat.get("solver.name")
-    if "solver.max_iters" in flat and flat["solver.max_iters"] is None and name not in NULL_MAX_ITERS:
+    unbounded = "solver.max_iters" in flat and flat["solver.max_iters"] is None
+    if unbounded and name not in NULL_MAX_ITERS:
         raise ConfigError(f"solver.max_iters: got None; solver {name} needs an integer >= 1 "
                           "(only lars takes null)")

@@ -58,6 +58,7 @@ def resume_config(saved: DictConfig, now: DictConfig, overrides: list[str], run_
         if key in now:
             OmegaConf.update(cfg, key, now[key], force_add=True)
     for key, value in budget.items():
-        log.warning("resume: %s %s -> %s (a budget override, taken)", key, _value(saved, key), value)
+        log.warning("resume: %s %s -> %s (a budget override, taken)", key, _value(saved, key),
+                    value)
         OmegaConf.update(cfg, key, value, force_add=True)
     return cfg

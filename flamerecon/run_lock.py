@@ -79,7 +79,7 @@ def acquire(run_dir: str | Path) -> Path:
         os.close(fd)
     record = (f"pid={os.getpid()}\nhost={socket.gethostname()}\n"
               f"since={time.strftime('%Y-%m-%d %H:%M:%S')}\n").encode()
-    with contextlib.suppress(OSError):  # who holds it is for messages only (a full disk may refuse it)
+    with contextlib.suppress(OSError):  # only for messages (a full disk may refuse it)
         os.ftruncate(fd, 0)
         os.pwrite(fd, record, 0)
     _HELD[path] = [fd, 1]

@@ -24,7 +24,14 @@ from omegaconf import DictConfig
 from .atomic import atomic_write_text
 from .checkpoint import CHECKPOINT_FILE
 from .cli import one_line
-from .errors import FlameReconError, Interrupted, ResumeError, RunFolderError, RunFolderInUse
+from .errors import (
+    FlameReconError,
+    Interrupted,
+    ResumeError,
+    RunFolderError,
+    RunFolderInUse,
+    errno_text,
+)
 
 FAILED_FILE = "FAILED"
 
@@ -79,7 +86,8 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
     except KeyboardInterrupt:
         if debug:
             raise
-        print("flamerecon: interrupted outside the solve; nothing was checkpointed", file=sys.stderr)
+        print("flamerecon: interrupted outside the solve; nothing was checkpointed",
+              file=sys.stderr)
         raise SystemExit(130) from None
     except Exception as err:
         if debug:
@@ -87,9 +95,16 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
         detail = traceback.format_exc()
         folder = failure_folder(err, cfg, failed_in)
         marker = record_failure(folder, f"unexpected {type(err).__name__}: {err}\n\n{detail}")
-        where = f"the traceback is in {marker}" if marker else "run again with debug=true for the traceback"
-        print(f"flamerecon: error: {folder}: unexpected {type(err).__name__}: {one_line(err)}; {where} "
-              "(please report it)", file=sys.stderr)
+        if isinstance(err, OSError) and err.errno:  # a system error outside flamerecon's writers
+            where = err.filename if err.filename is not None else folder
+            message = f"{where}: {errno_text(err)}; check the path, its permissions and free space"
+        elif isinstance(err, OSError):  # a missing file, said by a reader in its own words
+            message = one_line(err)
+        else:
+            where = f"the traceback is in {marker}" if marker else "debug=true shows the traceback"
+            message = (f"{folder}: unexpected {type(err).__name__}: {one_line(err)}; {where} "
+                       "(please report it)")
+        print(f"flamerecon: error: {message}", file=sys.stderr)
         if multirun:
             return None
         raise SystemExit(2) from None

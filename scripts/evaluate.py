@@ -18,7 +18,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from flamerecon.cli import ArgumentParser, run_script
-from flamerecon.pipeline import evaluate, summary_table
+from flamerecon.pipeline import evaluate, resolve_device, summary_table
+from flamerecon.run_lock import run_lock
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,7 +31,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def score() -> None:
-        metrics = evaluate(args.run_dir, device=args.device, native=args.native)
+        resolve_device(args.device, "--device")
+        with run_lock(args.run_dir):
+            metrics = evaluate(args.run_dir, device=args.device, native=args.native)
         print(f"{args.run_dir}\n{summary_table(metrics)}")
 
     return run_script(score, args.debug)

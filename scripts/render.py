@@ -44,6 +44,7 @@ from flamerecon.figures import (
 )
 from flamerecon.names import file_stem
 from flamerecon.pipeline import resolve_device
+from flamerecon.scenes.calibration import check_intrinsics, check_rigid
 
 UP = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
@@ -69,6 +70,10 @@ def read_cameras_json(path: Path, only: list[str] | None = None):
             size = (int(cam["height"]), int(cam["width"]))
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{path}: camera {name}: missing or bad field {err}") from err
+        check_intrinsics(K, path, f"camera {name}: K")
+        check_rigid(w2c, path, f"camera {name}: world_to_camera")
+        if min(size) < 1:
+            raise ValueError(f"{path}: camera {name}: width and height must be positive, got {size[::-1]}")
         names.append(name)
         Ks.append(K)
         w2cs.append(w2c)

@@ -661,3 +661,74 @@ def test_scripts_end_with_one_line_and_status_2(name, make, message, tmp_path, c
     monkeypatch.chdir(tmp_path)  # default output folders land here
     code, line = script_outcome(capsys, name, make(tmp_path, finished_run))
     assert code == 2 and re.search(message, line), line
+
+
+# ---------------------------------------------------------------------------------------------
+# family: what torch or kornia would have said, said with the field's name
+
+def _init_from_a_gray_run(tmp_path, capsys):
+    gray = tmp_path / "gray"
+    gray.mkdir()
+    _other_scenes_density(gray, channels=1)
+    (tmp_path / "run").mkdir()
+    return outcome(capsys, tiny_cfg(f"init={gray}"), tmp_path / "run")
+
+
+def _render_camera_without_focal_length(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    _other_scenes_density(run)
+    cam = {"name": "c", "K": np.zeros((3, 3)).tolist(), "world_to_camera": np.eye(4).tolist(),
+           "width": 8, "height": 8}
+    (tmp_path / "cams.json").write_text(json.dumps([cam]))
+    return script_outcome(capsys, "render", [str(run), "--camera", str(tmp_path / "cams.json")])
+
+
+INTERNALS = {
+    "init= from a run of other channels": (_init_from_a_gray_run,
+                                           r"init: .*gray holds 1 channel\(s\), this run's images 3"),
+    "render: camera file with K = 0": (_render_camera_without_focal_length,
+                                       r"cams\.json: camera c: K: focal lengths must be positive"),
+}
+
+
+@pytest.mark.parametrize("case", list(INTERNALS))
+def test_library_errors_become_field_named(case, tmp_path, capsys):
+    make, message = INTERNALS[case]
+    code, line = make(tmp_path, capsys)
+    assert code == 2 and re.search(message, line), line
+
+
+def test_file_stems_stay_unique():
+    from flamerecon.names import file_stems
+
+    assert file_stems(["train/r_0", "test/r_0", "train_r_0", "../x", ".hidden"]) == [
+        "train_r_0", "test_r_0", "train_r_0-2", "_x", "hidden"]
+
+
+def test_leave_one_out_checks_the_options_first(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("flamerecon.leave_one_out.load_scene", lambda *a: pytest.fail("loaded"))
+    code, line = script_outcome(capsys, "leave_one_out", [*TINY, "projector.step=0", "--out",
+                                                         str(tmp_path / "loo")])
+    assert code == 2 and line.startswith("projector.step: got 0"), line
+
+
+def _no_vtk():
+    raise ImportError("writing .vti needs the 'vtk' package; install the optional exporters")
+
+
+BEFORE_THE_SOLVE = {  # cases that used to fail only after the solve, or with a reader's traceback
+    "export=vti without vtk": ("export=vti", r"export\.formats: writing \.vti needs the 'vtk' package"),
+    "init= of a folder without density": ("init=/nonexistent/run",
+                                          r"init: /nonexistent/run.*no density file.*give a finished run"),
+}
+
+
+@pytest.mark.parametrize("case", list(BEFORE_THE_SOLVE))
+def test_refused_before_the_solve(case, tmp_path, capsys, monkeypatch):
+    override, message = BEFORE_THE_SOLVE[case]
+    monkeypatch.setattr("flamerecon.export._vtk", _no_vtk)
+    monkeypatch.setattr(pipeline, "guarded_solve", lambda *a, **k: pytest.fail("solved"))
+    (tmp_path / "run").mkdir()
+    code, line = outcome(capsys, tiny_cfg(override), tmp_path / "run")
+    assert code == 2 and re.search(message, line), line

@@ -13,8 +13,8 @@ from flamerecon.errors import ConfigError
 from flamerecon.options_check import RULES, check_options, leaves
 from tests.tiny_scene import REPO
 
-GROUPS = sorted(f"{d.name}={f.stem}" for d in (REPO / "conf").iterdir() if d.is_dir() and d.name != "hydra"
-                for f in d.glob("*.yaml"))
+GROUPS = sorted(f"{d.name}={f.stem}" for d in (REPO / "conf").iterdir()
+                if d.is_dir() and d.name != "hydra" for f in d.glob("*.yaml"))
 #: scenes that need a data folder to compose with
 ROOTED = {"scene=nerf", "scene=opencv"}
 
@@ -27,7 +27,8 @@ def composed(choice: str) -> dict:
 
 
 def test_every_config_group_is_walked():
-    assert {"solver=fista", "solver=tv_scalarflow", "scene=scalarflow", "scene=nerf", "export=all"} <= set(GROUPS)
+    assert {"solver=fista", "solver=tv_scalarflow", "scene=scalarflow", "scene=nerf",
+            "export=all"} <= set(GROUPS)
 
 
 @pytest.mark.parametrize("choice", GROUPS)
@@ -36,7 +37,8 @@ def test_every_key_of_every_group_has_a_rule_and_its_default_passes(choice):
     flat = leaves(config)
     missing = sorted(k for k in flat if k not in RULES)
     assert not missing, f"{choice}: keys without a rule in flamerecon/options_check.py: {missing}"
-    numeric = [k for k, v in flat.items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    numeric = [k for k, v in flat.items()
+               if isinstance(v, (int, float)) and not isinstance(v, bool)]
     assert numeric and all(k in RULES for k in numeric)
     check_options(config)  # the shipped defaults pass their own rules
 
