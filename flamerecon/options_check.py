@@ -146,7 +146,7 @@ RULES: dict[str, Rule] = {
     "grid.level_iters": Rule(
         either(integer(1), list_of(integer(1), what="a list of integers >= 1")), null=True),
     "projector.backend": Rule(choice("auto", "assembled", "matrix_free")),
-    "projector.step": Rule(number(0, lo_open=True)),
+    "projector.step": Rule(number(0.01)),  # voxels; finer only multiplies samples (and memory)
     "projector.max_memory_gb": Rule(number(0, lo_open=True), null=True),
     "silhouette.method": Rule(choice("otsu", "threshold")),
     "silhouette.threshold": Rule(number(0), null=True),
@@ -203,7 +203,7 @@ RULES: dict[str, Rule] = {
     "scene.height": Rule(integer(1)),
     "scene.seed": Rule(integer(0)),
     "scene.phantom_resolution": Rule(integer(2)),
-    "scene.phantom_step": Rule(number(0, lo_open=True)),
+    "scene.phantom_step": Rule(number(0.01)),
     "scene.noise": Rule(number(0)),
     "scene.peak": Rule(number(0, lo_open=True)),
     # export/*.yaml

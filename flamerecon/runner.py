@@ -98,7 +98,7 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
         if isinstance(err, OSError) and err.errno:  # a system error outside flamerecon's writers
             where = err.filename if err.filename is not None else folder
             message = f"{where}: {errno_text(err)}; check the path, its permissions and free space"
-        elif isinstance(err, OSError):  # a missing file, said by a reader in its own words
+        elif isinstance(err, (OSError, ValueError)):  # bad input said in a library's own words
             message = one_line(err)
         else:
             where = f"the traceback is in {marker}" if marker else "debug=true shows the traceback"

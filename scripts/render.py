@@ -133,9 +133,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def render(args: argparse.Namespace) -> list[Path]:
     device = resolve_device(args.device, "--device")
-    for flag in ("width", "height", "turntable"):
-        if getattr(args, flag) < (0 if flag == "turntable" else 1):
-            raise ValueError(f"--{flag}: got {getattr(args, flag)}; give a positive number")
+    for flag, least in (("width", 1), ("height", 1), ("turntable", 0), ("fps", 1)):
+        if not getattr(args, flag) >= least:
+            raise ValueError(f"--{flag}: got {getattr(args, flag)}; give a number >= {least}")
     if not 0 < args.fov < 180:
         raise ValueError(f"--fov: got {args.fov}; give a field of view between 0 and 180 degrees")
     density, lo, hi, _ = load_density(args.run_dir)

@@ -275,8 +275,9 @@ def test_view_names_with_slashes_become_safe_file_names(case, tmp_path, capsys):
 # family: options out of their range, refused before any work
 
 OPTIONS = {
-    "non-positive ray step": ("projector.step=0", r"projector\.step: got 0; projector\.step must be > 0"),
-    "negative ray step": ("projector.step=-0.5", r"projector\.step: got -0\.5; projector\.step must be > 0"),
+    "non-positive ray step": ("projector.step=0", r"projector\.step: got 0; projector\.step must be >= 0\.01"),
+    "negative ray step": ("projector.step=-0.5", r"projector\.step: got -0\.5; projector\.step must be >= 0\.01"),
+    "vanishing ray step": ("projector.step=1e-9", r"projector\.step: got 1e-09"),
     "zero iteration budget": ("solver.max_iters=0", r"solver\.max_iters: got 0; .* must be an integer >= 1"),
     "negative iteration budget": ("solver.max_iters=-5", r"solver\.max_iters: got -5"),
     "NaN tolerance": ("solver.tol=nan", r"solver\.tol: got nan; solver\.tol must be >= 0"),
@@ -639,7 +640,7 @@ SCRIPTS = [  # (case, script, argv maker, message)
     ("evaluate: --device cuda without a GPU", "evaluate", _plain("RUN", "--device", "cuda"),
      r"--device: 'cuda' was asked for"),
     ("render: bad orbit", "render", _plain("RUN", "--camera", "orbit:30"), r"orbit:ANGLE,ELEV"),
-    ("render: zero width", "render", _plain("RUN", "--width", "0"), r"--width: got 0"),
+    ("render: zero width", "render", _plain("RUN", "--width", "0"), r"--width: got 0; give a number >= 1"),
     ("benchmark: --grid 0", "benchmark", _plain("--grid", "0"), r"--grid: 0 is not a grid size; give N >= 2"),
     ("benchmark: --budget 0", "benchmark", _plain("--budget", "0"), r"--budget: got 0\.0"),
     ("benchmark: unknown solver", "benchmark", _plain("--solvers", "nope"),
@@ -684,7 +685,14 @@ def _render_camera_without_focal_length(tmp_path, capsys):
     return script_outcome(capsys, "render", [str(run), "--camera", str(tmp_path / "cams.json")])
 
 
+def _lars_too_big(tmp_path, capsys):
+    (tmp_path / "run").mkdir()
+    return outcome(capsys, tiny_cfg("solver=lars", "solver.max_voxels=10"), tmp_path / "run")
+
+
 INTERNALS = {
+    "a solver refusing the problem (ValueError)": (
+        _lars_too_big, r"^solver=lars: the problem has \d+ unknowns .* solver\.max_voxels"),
     "init= from a run of other channels": (_init_from_a_gray_run,
                                            r"init: .*gray holds 1 channel\(s\), this run's images 3"),
     "render: camera file with K = 0": (_render_camera_without_focal_length,

@@ -60,7 +60,7 @@ def test_every_numeric_key_refuses_nan_and_a_string(choice):
 
 
 BAD = {  # key: (value, message)
-    "projector.step": (-1.0, r"must be > 0"),
+    "projector.step": (-1.0, r"must be >= 0.01"),
     "solver.max_iters": (0, r"must be an integer >= 1"),
     "solver.tol": (math.inf, r"must be >= 0"),
     "hull.margin_voxels": (-2, r"integer >= 0"),
