@@ -4,12 +4,14 @@ Every writer here goes to a temporary name in the destination's own folder (same
 so :func:`os.replace` is atomic), flushes and fsyncs it, then renames it over the destination.
 A crash or exception mid-write leaves the previous file untouched and no partial file behind
 (at worst a hidden ``.<name>.<random>.tmp<suffix>`` sibling if the process is killed outright; it never takes
-the destination's name).
+the destination's name). A system error while writing (disk full, read-only folder) becomes an
+:class:`~flamerecon.errors.OutputError` naming the destination and the errno.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import re
@@ -20,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .errors import FlameReconError, output_error
 
 # Permissions of a newly created file under this process's umask (read once: os.umask can only
 # be read by setting it).
@@ -60,10 +64,13 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     folder = dest.parent if str(dest.parent) else Path(".")
     if not folder.is_dir():
         raise FileNotFoundError(f"cannot write {dest}: folder {folder} does not exist")
-    fd, tmp_name = tempfile.mkstemp(
-        prefix=f".{dest.name}.", suffix=_TEMP_MARK + (dest.suffix if suffix is None else suffix),
-        dir=folder,
-    )
+    try:
+        fd, tmp_name = tempfile.mkstemp(
+            prefix=f".{dest.name}.", suffix=_TEMP_MARK + (dest.suffix if suffix is None else suffix),
+            dir=folder,
+        )
+    except OSError as err:
+        raise output_error(dest, err) from err
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -75,10 +82,45 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600; give the usual permissions of a new file
         os.replace(tmp, dest)
         _fsync_dir(folder)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as err:
+        full = isinstance(err, (OSError, RuntimeError)) and disk_full(folder)  # before the unlink
+        with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(err, FlameReconError):
+            raise
+        if isinstance(err, OSError) and err.errno:
+            raise output_error(dest, err) from err
+        if full:  # a writer that reports a full disk without an errno (numpy, torch, VTK)
+            raise output_error(dest, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))) from err
         raise
+
+
+def make_folder(path: str | os.PathLike) -> Path:
+    """``mkdir -p path``; an :class:`~flamerecon.errors.OutputError` naming it when that fails."""
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise output_error(folder, err) from err
+    return folder
+
+
+def disk_full(folder: str | os.PathLike, min_free: int = 1 << 20) -> bool:
+    """Whether ``folder``'s file system has less than ``min_free`` bytes left for us."""
+    try:
+        stat = os.statvfs(folder)
+    except OSError:
+        return False
+    return stat.f_bavail * stat.f_frsize < min_free
+
+
+def write_errno(folder: str | os.PathLike, err: Exception) -> OSError:
+    """An OSError for a writer that failed without one (``torch.save``'s RuntimeError):
+    ENOSPC when ``folder``'s file system is full (:func:`disk_full`), else EIO carrying the
+    writer's message."""
+    if disk_full(folder):
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    return OSError(errno.EIO, f"{os.strerror(errno.EIO)} ({err})")
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:

@@ -7,18 +7,22 @@ from pathlib import Path
 
 import torch
 
-from .atomic import atomic_path
-from .errors import ResumeError
+from .atomic import atomic_path, write_errno
+from .errors import ResumeError, output_error
 
 CHECKPOINT_FILE = "checkpoint.pt"
 
 
 def save_checkpoint(run_dir: str | Path, payload: dict) -> Path:
     """``torch.save`` ``payload`` (tensors moved to the CPU) to ``run_dir/checkpoint.pt``, whole
-    or not at all."""
+    or not at all; a failed write (torch reports a full disk as a RuntimeError) is an
+    :class:`~flamerecon.errors.OutputError` naming the file and the errno."""
     path = Path(run_dir) / CHECKPOINT_FILE
-    with atomic_path(path) as tmp:
-        torch.save(_to_cpu(payload), tmp)
+    try:
+        with atomic_path(path) as tmp:
+            torch.save(_to_cpu(payload), tmp)
+    except RuntimeError as err:
+        raise output_error(path, write_errno(path.parent, err)) from err
     return path
 
 

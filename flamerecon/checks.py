@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 
+import numpy as np
 import torch
 from kornia.geometry.camera import PinholeCamera
 
@@ -203,3 +204,35 @@ def explain_empty_hull(
         f"hull.margin_voxels={margin_voxels + 2} (now {margin_voxels}), or check that view's "
         "calibration"
     )
+
+
+def check_density_fits(path, density, scene: Scene, grid: VoxelGrid, config_file) -> None:
+    """Refuse to score a saved density (:class:`~flamerecon.export.Density`) against a scene it
+    was not made for: its channels, fitted views and grid (box and cells) must be those of
+    ``scene`` and of ``grid``, the grid the run's config (``config_file``) gives."""
+    from .export import DensityFileError
+
+    C = int(density.density.shape[0])
+    if C != int(scene.images.shape[1]):
+        raise DensityFileError(
+            f"{path}: field 'density' has {C} channel(s) but scene '{scene.name}' of {config_file} "
+            f"has {int(scene.images.shape[1])}; the density was made for another scene (two runs "
+            "into one folder?): evaluate the folder the density was written in"
+        )
+    unknown = [v for v in density.views if v not in scene.views]
+    if unknown:
+        raise DensityFileError(
+            f"{path}: field 'views': the density was fitted to views {unknown} that scene "
+            f"'{scene.name}' of {config_file} does not have ({scene.views}); it was made for another scene"
+        )
+    shape = tuple(int(n) for n in density.density.shape[1:])
+    same_box = np.allclose(density.bbox_min, grid.bbox_min) and np.allclose(density.bbox_max, grid.bbox_max)
+    if shape != tuple(grid.shape) or not same_box:
+        nz, ny, nx = shape
+        lo, hi = ([round(float(v), 4) for v in box] for box in (density.bbox_min, density.bbox_max))
+        glo, ghi = ([round(float(v), 4) for v in box] for box in (grid.bbox_min, grid.bbox_max))
+        raise DensityFileError(
+            f"{path}: field 'density' is a {nx}x{ny}x{nz} grid over the box {lo}..{hi} but "
+            f"{config_file} gives {'x'.join(map(str, grid.resolution))} cells over {glo}..{ghi}; "
+            "the density and the config come from different runs"
+        )

@@ -7,6 +7,9 @@ and exits with the error's :attr:`~FlameReconError.exit_code`.
 
 from __future__ import annotations
 
+import errno
+import os
+
 
 class FlameReconError(Exception):
     """Base class: a message for the user, not a bug. Exit status 2 (bad input)."""
@@ -44,3 +47,38 @@ class Interrupted(FlameReconError):
 
 class RunFolderError(FlameReconError, FileNotFoundError):
     """A folder given as a run folder (``resume=``, evaluate) that is not one."""
+
+
+class OutputError(FlameReconError, OSError):
+    """A file or folder that could not be written (disk full, read-only, no permission); the
+    message names the path and the errno. Whatever was there before is left as it was."""
+
+
+class RunFolderInUse(RunFolderError):
+    """Another live process writes into the run folder (its lock is held)."""
+
+
+def errno_text(err: OSError) -> str:
+    """``errno 28 ENOSPC: No space left on device`` for an OSError (its message when it has
+    no errno)."""
+    if not err.errno:
+        return str(err)
+    name = errno.errorcode.get(err.errno, "?")
+    return f"errno {err.errno} {name}: {err.strerror or os.strerror(err.errno)}"
+
+
+_HINTS = {
+    errno.ENOSPC: "free space on that file system or write elsewhere",
+    errno.EDQUOT: "free space within your quota or write elsewhere",
+    errno.EROFS: "the file system is read-only: write elsewhere",
+    errno.EACCES: "make the folder writable or write elsewhere",
+    errno.EPERM: "make the folder writable or write elsewhere",
+}
+
+
+def output_error(path, err: OSError) -> OutputError:
+    """The :class:`OutputError` for writing ``path`` failing with ``err``, with what to try."""
+    hint = _HINTS.get(err.errno, "check the folder and its file system, or write elsewhere")
+    out = OutputError(f"{path}: cannot write ({errno_text(err)}); {hint}")
+    out.errno = err.errno
+    return out

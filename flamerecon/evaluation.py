@@ -14,10 +14,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from .atomic import atomic_write_bytes
+from .atomic import atomic_write_bytes, make_folder
 from .cameras import camera_subset, cameras_to
 from .grid import VoxelGrid
 from .metrics import psnr, resample_to, ssim, volume_errors
+from .names import file_stems
 from .photometry import apply_gain_offset
 from .projector import camera_rays, integrate_dense, ray_box, render_image, support_box
 from .scenes import Scene, load_scene
@@ -121,15 +122,16 @@ def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
 
 
 def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
-    """renders/<view>.png: rendered | captured | |error| x4, one per held-out view."""
-    folder = run_dir / "renders"
-    folder.mkdir(parents=True, exist_ok=True)
+    """renders/<view>.png: rendered | captured | |error| x4, one per held-out view (the view
+    name made a safe, unique file name, :func:`~flamerecon.names.file_stems`)."""
+    folder = make_folder(run_dir / "renders")
+    stems = file_stems(scene.views)
     for img, v in zip(rendered, views):
         panel = side_by_side(img, scene.images[v]).permute(1, 2, 0).numpy()
         ok, png = cv2.imencode(".png", (panel[..., ::-1] * 255 + 0.5).astype(np.uint8))
         if not ok:
             raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")
-        atomic_write_bytes(folder / f"{scene.views[v]}.png", png.tobytes())
+        atomic_write_bytes(folder / f"{stems[v]}.png", png.tobytes())
 
 
 def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],

@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from flamerecon.atomic import atomic_path, save_npz_atomic, write_json_atomic
-from flamerecon.errors import FlameReconError
+from flamerecon.errors import ConfigError, FlameReconError
 
 DENSITY_FILE = "density.npz"
 FORMATS = ("vti", "nrrd", "raw")
@@ -366,6 +366,22 @@ def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS) -> 
     """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``."""
     run_dir = Path(run_dir)
     return export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats)
+
+
+def check_exporters(formats: Iterable[str]) -> None:
+    """ConfigError naming ``export.formats`` when a format's optional package is missing
+    (checked before a run, not after its solve)."""
+    try:
+        for fmt in _check_formats(formats):
+            if fmt == "vti":
+                _vtk()
+            elif fmt == "nrrd":
+                try:
+                    import nrrd  # noqa: F401
+                except ImportError as err:
+                    raise ImportError(f"writing .nrrd needs the 'pynrrd' package; {_INSTALL_HINT}") from err
+    except (ImportError, ValueError) as err:
+        raise ConfigError(f"export.formats: {err}") from None
 
 
 def _check_formats(formats: Iterable[str]) -> list[str]:

@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from .atomic import write_json_atomic
 from .device import resolve_device
 from .evaluation import render_scene_views, score_views, silhouette_union, write_renders
+from .options_check import check_options
 from .pipeline import prepare, solve, warm_start
 from .scenes import Scene, SceneError, load_scene
 
@@ -33,6 +34,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     ``views`` {name: scores, iterations, seconds, l1, train}, ``mean`` over views of
     :data:`AVERAGED`, ``exclude``, ``config``. ``progress(name, row)`` is called per view.
     ``scene`` is ``cfg.scene`` already loaded (loaded here when None)."""
+    check_options(OmegaConf.to_container(cfg, resolve=True))
     out_dir = Path(out_dir)
     device = resolve_device(cfg.device)
     scene = load_scene(cfg.scene) if scene is None else scene

@@ -20,6 +20,7 @@ from .atomic import write_json_atomic
 from .cameras import K_of, camera_subset, cameras_to
 from .checkpoint import CHECKPOINT_FILE, load_checkpoint
 from .checks import (
+    check_density_fits,
     check_grid_memory,
     check_scene,
     check_silhouettes,
@@ -30,15 +31,17 @@ from .checks import (
 from .device import resolve_device
 from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
 from .evaluation import native_scores, render_scene_views, score, score_views, write_renders
-from .export import export_run, load_density, save_density
+from .export import check_exporters, export_run, load_density, save_density
 from .figures import top_view
 from .grid import VoxelGrid
 from .guard import SolveGuard, StopSolve, stop_signals
 from .hull import visual_hull
 from .levels import level_grids, level_iters
 from .metrics import resample_to
+from .options_check import check_options
 from .photometry import fit_gain_offset_rows, normalize_gains
 from .projector import camera_rays, make_operator
+from .run_lock import run_lock
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
 from .solvers import SOLVERS, Problem, Solver, SolveResult, make_solver, resolve_l1
@@ -190,10 +193,18 @@ def solve(cfg: DictConfig, setup: Setup, x0: torch.Tensor | None = None
     return result, l1, photometry
 
 
-def init_volume(path: str | Path, grid: VoxelGrid) -> torch.Tensor:
+def init_volume(path: str | Path, grid: VoxelGrid, channels: int | None = None) -> torch.Tensor:
     """The density (C, nz', ny', nx') of a finished run (``init=``), which must cover the box of
-    ``grid`` (its resolution may differ)."""
-    saved = load_density(path)
+    ``grid`` (its resolution may differ) and have ``channels`` channels (when given)."""
+    try:
+        saved = load_density(path)
+    except FileNotFoundError as err:
+        raise ConfigError(f"init: {err}; give a finished run's folder or its density.npz") from None
+    if channels is not None and saved.density.shape[0] != channels:
+        raise ConfigError(
+            f"init: {path} holds {saved.density.shape[0]} channel(s), this run's images {channels}; "
+            "warm start from a run of the same capture (scene.channels)"
+        )
     if not (np.allclose(saved.bbox_min, grid.bbox_min) and np.allclose(saved.bbox_max, grid.bbox_max)):
         raise ConfigError(
             f"init: {path} covers the box {saved.bbox_min.tolist()}-{saved.bbox_max.tolist()}, "
@@ -257,7 +268,8 @@ def warm_start(cfg: DictConfig, scene: Scene, device: torch.device, setup: Setup
     """x0 (M, C) for the fine ``setup`` without a run folder: the ``init=`` run's density
     and/or the solutions of ``grid.levels`` (see :func:`coarse_levels`); None for a cold start."""
     grids = level_grids(cfg.grid.get("levels"), setup.grid)
-    volume = init_volume(cfg.init, grids[0] if grids else setup.grid) if cfg.get("init") else None
+    volume = (init_volume(cfg.init, grids[0] if grids else setup.grid, setup.pixels.shape[1])
+              if cfg.get("init") else None)
     volume = coarse_levels(cfg, scene, device, volume)
     return None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
 
@@ -382,6 +394,16 @@ def solver_options(cfg: DictConfig) -> dict:
 
 
 def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
+    """:func:`reconstruct_in` after checking every option of ``cfg``
+    (:func:`~flamerecon.options_check.check_options`), holding ``run_dir``'s lock
+    (:func:`~flamerecon.run_lock.run_lock`: a second writer is refused)."""
+    check_options(OmegaConf.to_container(cfg, resolve=True))
+    check_exporters(cfg.get("export", {}).get("formats", []))
+    with run_lock(run_dir):
+        return reconstruct_in(cfg, run_dir, resume)
+
+
+def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
     """Run the whole pipeline for ``cfg`` and write the run folder; returns metrics.json's dict.
 
     With ``grid.levels`` the coarse grids are solved first (:func:`coarse_levels`), each logged
@@ -417,7 +439,7 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
         )
     volume = None
     if ckpt is None and cfg.get("init"):
-        volume = init_volume(cfg.init, grids[0] if grids else fine)
+        volume = init_volume(cfg.init, grids[0] if grids else fine, int(scene.images.shape[1]))
 
     def solve_level(level: int, level_cfg: DictConfig, setup: Setup, x0: torch.Tensor | None) -> SolveResult:
         """Coarse level ``level`` under the watchdog, resumed when the checkpoint is its own."""
@@ -673,6 +695,8 @@ def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> 
     lo, hi = tuple(saved.bbox_min.tolist()), tuple(saved.bbox_max.tolist())
     nz, ny, nx = saved.density.shape[1:]
     grid = VoxelGrid(lo, hi, (nx, ny, nz))
+    check_density_fits(run_dir / "density.npz", saved, scene, scene_grid(cfg, scene),
+                       run_dir / ".hydra" / "config.yaml")
     volume = torch.from_numpy(saved.density).to(resolve_device(device))
     with np.load(run_dir / "density.npz") as f:
         solver_info = json.loads(str(f["solver"])) if "solver" in f.files else {}

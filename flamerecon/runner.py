@@ -6,7 +6,9 @@
   (2 bad input, 3 diverged, 130 interrupted).
 - Every failed run folder gets a ``FAILED`` file with the message (and the traceback of an
   unexpected exception). Under ``--multirun`` a failed job records it and returns, so the other
-  jobs still run; :class:`FailureSummary` lists the failures at the end and exits with status 1.
+  jobs still run; :class:`FailureSummary` lists the failures at the end and exits with status 2.
+- An unexpected exception (a bug) is one line too, exit status 2, its traceback in ``FAILED``.
+- :class:`LockRunFolder` refuses a second run into a run folder in use.
 """
 
 from __future__ import annotations
@@ -21,26 +23,30 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from .atomic import atomic_write_text
-from .errors import FlameReconError, Interrupted
+from .checkpoint import CHECKPOINT_FILE
+from .cli import one_line
+from .errors import (
+    FlameReconError,
+    Interrupted,
+    ResumeError,
+    RunFolderError,
+    RunFolderInUse,
+    errno_text,
+)
 
 FAILED_FILE = "FAILED"
 
 
 def record_failure(run_dir: str | Path, message: str) -> Path | None:
-    """Write ``run_dir/FAILED`` with ``message`` (atomically); None where the folder is gone."""
+    """Write ``run_dir/FAILED`` with ``message`` (atomically); None where the folder is gone or
+    cannot be written (the one-line error on stderr says why)."""
     folder = Path(run_dir)
     if not folder.is_dir():
         return None
-    return atomic_write_text(folder / FAILED_FILE, message.rstrip() + "\n")
-
-
-def script_error(err: Exception, debug: bool) -> int:
-    """A script's known error as one line on stderr (re-raised with ``debug``); returns the
-    exit status."""
-    if debug:
-        raise err
-    print(f"flamerecon: error: {err}", file=sys.stderr)
-    return getattr(err, "exit_code", 2)
+    try:
+        return atomic_write_text(folder / FAILED_FILE, message.rstrip() + "\n")
+    except OSError:
+        return None
 
 
 def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
@@ -59,34 +65,43 @@ def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
 
 
 def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
-             cwd: str | Path | None = None) -> float | None:
-    """Reconstruct (or resume, with ``resume=RUN_DIR``) and print the summary; returns the mean
-    held-out PSNR, or None for a multirun job that failed. ``cwd`` is the folder the command
-    was started in, against which relative paths resolve (default: the working directory)."""
+             cwd: str | Path | None = None, overrides: list[str] | None = None) -> float | None:
+    """Reconstruct (or resume, with ``resume=RUN_DIR``: the run's own config, with the budget
+    ``overrides`` of the command line, see :func:`~flamerecon.resume.resume_config`) and print the
+    summary; returns the mean held-out PSNR, or None for a multirun job that failed. ``cwd`` is
+    the folder the command was started in, against which relative paths resolve (default: the
+    working directory).
+
+    A failure writes ``FAILED`` into the folder of the run that failed: the resumed folder once
+    its solve went on, this command's own folder (``run_dir``) when the resume was refused, so
+    that a finished run's folder never gets one; a folder another process holds gets nothing."""
     from .pipeline import flat_metrics, reconstruct, run_config, summary_table
+    from .resume import resume_config
 
     debug = bool(cfg.get("debug", False))
     start = Path.cwd() if cwd is None else Path(cwd)
+    failed_in = Path(run_dir)
     try:
         if cfg.get("resume"):
-            run_dir = Path(str(cfg.resume))
-            if not run_dir.is_absolute():
-                run_dir = start / run_dir
-            cfg = run_config(run_dir)
+            resumed = Path(str(cfg.resume))
+            if not resumed.is_absolute():
+                resumed = start / resumed
+            cfg = resume_config(run_config(resumed), cfg, list(overrides or []), resumed)
             anchor_scene_root(cfg, start)
-            metrics = reconstruct(cfg, run_dir, resume=True)
-            (run_dir / FAILED_FILE).unlink(missing_ok=True)
+            metrics = reconstruct(cfg, resumed, resume=True)
+            (resumed / FAILED_FILE).unlink(missing_ok=True)
+            run_dir = resumed
         else:
             anchor_scene_root(cfg, start)
             metrics = reconstruct(cfg, run_dir)
     except FlameReconError as err:
         if debug:
             raise
-        message = f"flamerecon: error: {err}"
-        print(message, file=sys.stderr)
+        print(f"flamerecon: error: {err}", file=sys.stderr)
         if isinstance(err, Interrupted):
             raise SystemExit(err.exit_code) from None
-        record_failure(run_dir, str(err))
+        if not isinstance(err, RunFolderInUse):
+            record_failure(failure_folder(err, cfg, failed_in), str(err))
         if multirun:
             return None
         print("flamerecon: (run again with debug=true for the traceback)", file=sys.stderr)
@@ -94,17 +109,40 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
     except KeyboardInterrupt:
         if debug:
             raise
-        print("flamerecon: interrupted outside the solve; nothing was checkpointed", file=sys.stderr)
+        print("flamerecon: interrupted outside the solve; nothing was checkpointed",
+              file=sys.stderr)
         raise SystemExit(130) from None
     except Exception as err:
-        if not multirun or debug:
+        if debug:
             raise
         detail = traceback.format_exc()
-        print(f"flamerecon: error (unexpected {type(err).__name__}): {err}", file=sys.stderr)
-        record_failure(run_dir, f"unexpected {type(err).__name__}: {err}\n\n{detail}")
-        return None
+        folder = failure_folder(err, cfg, failed_in)
+        marker = record_failure(folder, f"unexpected {type(err).__name__}: {err}\n\n{detail}")
+        if isinstance(err, OSError) and err.errno:  # a system error outside flamerecon's writers
+            where = err.filename if err.filename is not None else folder
+            message = f"{where}: {errno_text(err)}; check the path, its permissions and free space"
+        elif isinstance(err, (OSError, ValueError)):  # bad input said in a library's own words
+            message = one_line(err)
+        else:
+            where = f"the traceback is in {marker}" if marker else "debug=true shows the traceback"
+            message = (f"{folder}: unexpected {type(err).__name__}: {one_line(err)}; {where} "
+                       "(please report it)")
+        print(f"flamerecon: error: {message}", file=sys.stderr)
+        if multirun:
+            return None
+        raise SystemExit(2) from None
     print(f"\nflamerecon: {cfg.scene.name}, run folder {run_dir}\n{summary_table(metrics)}")
     return flat_metrics(metrics)["heldout_psnr"]
+
+
+def failure_folder(err: Exception, cfg: DictConfig, own: Path) -> Path:
+    """Where a failure is recorded: ``own`` (this command's folder), or with ``resume=`` the
+    resumed folder when it still holds its checkpoint (an unfinished run) and the resume was
+    not refused: a finished run's folder never gets a ``FAILED``."""
+    if not cfg.get("resume") or isinstance(err, (ResumeError, RunFolderError)):
+        return own
+    resumed = Path(str(cfg.resume))
+    return resumed if (resumed / CHECKPOINT_FILE).is_file() else own
 
 
 def failures(sweep_dir: str | Path) -> list[tuple[Path, str]]:
@@ -116,8 +154,51 @@ def failures(sweep_dir: str | Path) -> list[tuple[Path, str]]:
     return out
 
 
+class LockRunFolder(Callback):
+    """Hydra callback: take the run folder's lock (the sweep folder's, for a multirun) before
+    Hydra writes ``.hydra/`` into it, so that a second run into a folder in use is refused
+    before it changes anything there (exit status 2). The folder's name is resolved once and
+    kept (``${now:...}`` would otherwise be read again)."""
+
+    def __init__(self) -> None:
+        self.held = None
+
+    def _take(self, config: DictConfig, key: str) -> None:
+        from omegaconf import OmegaConf, open_dict, read_write
+
+        from .run_lock import acquire
+
+        folder = str(OmegaConf.select(config, key))
+        with read_write(config), open_dict(config):
+            OmegaConf.update(config, key, folder)
+        try:
+            self.held = acquire(folder)
+        except FlameReconError as err:
+            print(f"flamerecon: error: {err}", file=sys.stderr)
+            raise SystemExit(err.exit_code) from None
+
+    def _give_back(self) -> None:
+        from .run_lock import release
+
+        if self.held is not None:
+            release(self.held)
+            self.held = None
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._take(config, "hydra.run.dir")
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        self._give_back()
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._take(config, "hydra.sweep.dir")
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        self._give_back()
+
+
 class FailureSummary(Callback):
-    """Hydra callback: after a multirun, list the jobs that failed and exit with status 1."""
+    """Hydra callback: after a multirun, list the jobs that failed and exit with status 2."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
@@ -128,4 +209,4 @@ class FailureSummary(Callback):
         lines = [f"flamerecon: {len(failed)} of {jobs} jobs failed:"]
         lines += [f"  {folder}: {msg}" for folder, msg in failed]
         print("\n".join(lines), file=sys.stderr)
-        raise SystemExit(1)
+        raise SystemExit(2)

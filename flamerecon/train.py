@@ -7,6 +7,8 @@ traceback); ``resume=RUN_DIR`` continues an interrupted run in its folder.
 
 from __future__ import annotations
 
+import sys
+
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
@@ -21,8 +23,22 @@ def task(cfg: DictConfig) -> float | None:
 
     hc = HydraConfig.get()
     return run_task(cfg, hc.runtime.output_dir, multirun=hc.mode == RunMode.MULTIRUN,
-                    cwd=hc.runtime.cwd)
+                    cwd=hc.runtime.cwd, overrides=list(hc.overrides.task))
 
 
-#: the console entry point; Hydra names the job after this module (``train``, so ``train.log``)
-main = hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")(task)
+#: Hydra names the job after this module (``train``, so ``train.log``)
+hydra_main = hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")(task)
+
+
+def main() -> None:
+    """The console entry point: Hydra's own refusal of a command line (exit 1) becomes exit 2
+    with the one-line form after Hydra's message."""
+    try:
+        hydra_main()
+    except SystemExit as stop:
+        if stop.code == 1:  # Hydra refused the command line (unknown key or group, bad syntax)
+            print("flamerecon: error: config: the command line was refused (Hydra's message "
+                  "above); python train.py --help lists the config groups, --cfg job the keys",
+                  file=sys.stderr)
+            raise SystemExit(2) from None
+        raise

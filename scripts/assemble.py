@@ -8,33 +8,31 @@ sequence_vti/frame_NNNN.vti, sequence_metrics.csv and sequence_metrics.png (need
 
 from __future__ import annotations
 
-import argparse
 import sys
 
-from flamerecon.export import DensityFileError
-from flamerecon.sequence import SweepError, assemble_sweep
+from flamerecon.cli import ArgumentParser, run_script
+from flamerecon.sequence import assemble_sweep
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sweep_dir", help="multirun folder whose subfolders are per-frame runs")
     parser.add_argument("--no-vti", action="store_true", help="skip the .vti series and .pvd")
     parser.add_argument(
         "--skip-incomplete", action="store_true", help="leave out runs without density.npz"
     )
     args = parser.parse_args(argv)
-    try:
+
+    def assemble() -> None:
         written = assemble_sweep(args.sweep_dir, vti=not args.no_vti,
                                  skip_incomplete=args.skip_incomplete)
-    except (FileNotFoundError, DensityFileError, SweepError, ImportError) as err:
-        print(f"assemble: {err}", file=sys.stderr)
-        return 1
-    for kind, path in written.items():
-        if path is None:
-            print(f"{kind}: skipped (matplotlib not installed or no numeric metrics)")
-        else:
-            print(f"{kind}: {path}")
-    return 0
+        for kind, path in written.items():
+            if path is None:
+                print(f"{kind}: skipped (matplotlib not installed or no numeric metrics)")
+            else:
+                print(f"{kind}: {path}")
+
+    return run_script(assemble, args.debug)
 
 
 if __name__ == "__main__":

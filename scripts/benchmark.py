@@ -13,11 +13,11 @@ one A x and one A^T y against the bound bytes(A) / bandwidth.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
 import queue as queue_module
+import sys
 import tempfile
 import time
 import warnings
@@ -26,13 +26,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.device import resolve_device
 from flamerecon.grid import VoxelGrid
 from flamerecon.hull import visual_hull
 from flamerecon.projector import assemble, camera_rays
 from flamerecon.scenes import load_scene
 from flamerecon.silhouettes import silhouettes
-from flamerecon.solvers import Problem, lambda_max, make_solver
+from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
 
 TARGETS = (1e-4, 1e-6)
 DEFAULT_SOLVER = "fista"
@@ -297,8 +298,26 @@ def print_table(report: dict) -> None:
               f"{m['iterations']:>8}{m['objective']:>16.8g}")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def check_args(args) -> None:
+    """Refuse a bad command line before any work (building the problem takes seconds)."""
+    from flamerecon.errors import ConfigError
+
+    bad = [n for n in args.grid if n < 2]
+    if bad:
+        raise ConfigError(f"--grid: {bad[0]} is not a grid size; give N >= 2 (cells per side of N^3)")
+    if not args.budget > 0:
+        raise ConfigError(f"--budget: got {args.budget}; give the seconds per method, > 0")
+    if not args.l1_rel >= 0:
+        raise ConfigError(f"--l1-rel: got {args.l1_rel}; give lambda / max(A^T P) >= 0")
+    if args.threads is not None and args.threads < 1:
+        raise ConfigError(f"--threads: got {args.threads}; give a positive number of threads")
+    unknown = [s for s in args.solvers if s not in SOLVERS]
+    if unknown:
+        raise ConfigError(f"--solvers: unknown solver {unknown[0]!r}; choose from {sorted(SOLVERS)}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--grid", type=int, nargs="+", default=[64], help="grid sizes N (N^3)")
     parser.add_argument("--l1-rel", type=float, default=1e-3, help="lambda / max(A^T P)")
     parser.add_argument("--budget", type=float, default=60.0, help="seconds per method")
@@ -309,7 +328,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--out", default="benchmark.json")
     parser.add_argument("--dump", default=None, help="folder for A.npz, problem.npz, benchmark.json")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    return run_script(lambda: run(args), args.debug)
+
+
+def run(args) -> None:
+    check_args(args)
     device = resolve_device(args.device, "--device")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
@@ -331,4 +355,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

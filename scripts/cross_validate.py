@@ -21,13 +21,11 @@ import time
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
-from hydra.errors import HydraException
 
 from flamerecon.atomic import write_json_atomic
-from flamerecon.errors import FlameReconError
+from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.leave_one_out import leave_one_out
 from flamerecon.resources import config_dir
-from flamerecon.runner import script_error
 from flamerecon.scenes import load_scene
 
 
@@ -82,7 +80,7 @@ def table(rows: list[dict], sweep_keys: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="train.py overrides shared by every setting")
     parser.add_argument("--sweep", type=key_values, action="append", default=[],
                         help="key=v1,v2,...: values to compare (repeat for a grid)")
@@ -91,7 +89,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--exclude", default="", help="comma-separated views never fitted")
     parser.add_argument("--test", action="store_true", help="also score the excluded views")
     parser.add_argument("--out", type=Path, help="output folder (default outputs/cv/<date>/<time>)")
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
     out = args.out or Path("outputs/cv") / time.strftime("%Y-%m-%d") / time.strftime("%H-%M-%S")
     exclude = [v for v in args.exclude.split(",") if v]
@@ -101,17 +98,17 @@ def main(argv: list[str] | None = None) -> int:
     averages = [[f"{k}={v}" for k, v in zip([k for k, _ in args.average], combo)]
                 for combo in itertools.product(*[vals for _, vals in args.average])] if args.average else []
     rows = []
-    try:
+
+    def run() -> None:
         for i, setting in enumerate(settings):
             row = score_setting([*args.overrides, *setting], averages, exclude, args.test, out / f"{i:03d}")
             rows.append(row)
             print(f"  {' '.join(setting) or '(base)'}: CV PSNR {row['cv_psnr']:.2f} dB"
                   + (f", test {row['test_psnr']:.2f} dB" if "test_psnr" in row else ""), flush=True)
             write_json_atomic(out / "cv.json", {"exclude": exclude, "settings": rows})
-    except (FlameReconError, FileNotFoundError, HydraException) as err:
-        return script_error(err, args.debug)
-    print(f"cross-validation ({len(rows)} settings): {out / 'cv.json'}\n{table(rows, sweep_keys)}")
-    return 0
+        print(f"cross-validation ({len(rows)} settings): {out / 'cv.json'}\n{table(rows, sweep_keys)}")
+
+    return run_script(run, args.debug)
 
 
 if __name__ == "__main__":

@@ -12,29 +12,30 @@ each PSNR beside that of an all-black image (the floor).
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-from flamerecon.errors import FlameReconError
+from flamerecon.cli import ArgumentParser, run_script
+from flamerecon.device import resolve_device
 from flamerecon.pipeline import evaluate, summary_table
-from flamerecon.runner import script_error
+from flamerecon.run_lock import run_lock
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a run folder written by train.py")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda")
     parser.add_argument("--no-native", dest="native", action="store_false",
                         help="skip the native-resolution scores (loading full-size frames)")
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
-    try:
-        metrics = evaluate(args.run_dir, device=args.device, native=args.native)
-    except (FlameReconError, FileNotFoundError) as err:
-        return script_error(err, args.debug)
-    print(f"{args.run_dir}\n{summary_table(metrics)}")
-    return 0
+
+    def score() -> None:
+        resolve_device(args.device, "--device")
+        with run_lock(args.run_dir):
+            metrics = evaluate(args.run_dir, device=args.device, native=args.native)
+        print(f"{args.run_dir}\n{summary_table(metrics)}")
+
+    return run_script(score, args.debug)
 
 
 if __name__ == "__main__":

@@ -7,28 +7,29 @@ Writes RUN_DIR/density.vti, density.nrrd, density.raw + density.raw.json.
 
 from __future__ import annotations
 
-import argparse
 import sys
 
-from flamerecon.export import FORMATS, DensityFileError, export_run
+from flamerecon.cli import ArgumentParser, run_script
+from flamerecon.export import FORMATS, export_run
+from flamerecon.run_lock import run_lock
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", help="run folder holding density.npz")
     parser.add_argument(
         "--format", dest="formats", action="append", choices=[*FORMATS, "all"],
         help="export format; repeat for several (default: all)",
     )
     args = parser.parse_args(argv)
-    try:
-        written = export_run(args.run_dir, args.formats or ["all"])
-    except (FileNotFoundError, DensityFileError, ImportError, ValueError) as err:
-        print(f"export: {err}", file=sys.stderr)
-        return 1
-    for path in written:
-        print(path)
-    return 0
+
+    def export() -> None:
+        with run_lock(args.run_dir):
+            written = export_run(args.run_dir, args.formats or ["all"])
+        for path in written:
+            print(path)
+
+    return run_script(export, args.debug)
 
 
 if __name__ == "__main__":

@@ -10,18 +10,15 @@ mean, and writes DIR/loo.json and DIR/renders/. ``--exclude`` keeps views out of
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
-from hydra.errors import HydraException
 
-from flamerecon.errors import FlameReconError
+from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.leave_one_out import leave_one_out, loo_table
 from flamerecon.resources import config_dir
-from flamerecon.runner import script_error
 
 
 def names(value: str | None) -> list[str]:
@@ -29,15 +26,15 @@ def names(value: str | None) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="train.py overrides, key=value")
     parser.add_argument("--views", help="comma-separated views to hold out in turn (default: all)")
     parser.add_argument("--exclude", help="comma-separated views left out of every fit")
     parser.add_argument("--out", type=Path, help="output folder (default outputs/loo/<date>/<time>)")
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     args = parser.parse_args(argv)
     out = args.out or Path("outputs/loo") / time.strftime("%Y-%m-%d") / time.strftime("%H-%M-%S")
-    try:
+
+    def run() -> None:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name="train", overrides=args.overrides)
         record = leave_one_out(
@@ -45,10 +42,9 @@ def main(argv: list[str] | None = None) -> int:
             progress=lambda name, r: print(f"  {name}: PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f}, "
                                            f"{r['iterations']} iterations, {r['seconds']:.1f} s", flush=True),
         )
-    except (FlameReconError, FileNotFoundError, HydraException) as err:
-        return script_error(err, args.debug)
-    print(f"leave-one-view-out, {cfg.scene.name}: {out / 'loo.json'}\n{loo_table(record)}")
-    return 0
+        print(f"leave-one-view-out, {cfg.scene.name}: {out / 'loo.json'}\n{loo_table(record)}")
+
+    return run_script(run, args.debug)
 
 
 if __name__ == "__main__":

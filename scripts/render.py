@@ -24,9 +24,11 @@ import cv2
 import numpy as np
 import torch
 
+from flamerecon.atomic import make_folder
 from flamerecon.cameras import make_cameras
+from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.device import resolve_device
-from flamerecon.export import DensityFileError, load_density
+from flamerecon.export import load_density
 from flamerecon.figures import (
     framing_distance,
     orbit_cameras,
@@ -41,6 +43,8 @@ from flamerecon.figures import (
     write_mp4,
     write_png,
 )
+from flamerecon.names import file_stem
+from flamerecon.scenes.calibration import check_intrinsics, check_rigid
 
 UP = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
@@ -66,6 +70,10 @@ def read_cameras_json(path: Path, only: list[str] | None = None):
             size = (int(cam["height"]), int(cam["width"]))
         except (KeyError, TypeError, ValueError) as err:
             raise ValueError(f"{path}: camera {name}: missing or bad field {err}") from err
+        check_intrinsics(K, path, f"camera {name}: K")
+        check_rigid(w2c, path, f"camera {name}: world_to_camera")
+        if min(size) < 1:
+            raise ValueError(f"{path}: camera {name}: width and height must be positive, got {size[::-1]}")
         names.append(name)
         Ks.append(K)
         w2cs.append(w2c)
@@ -95,7 +103,7 @@ def parse_orbit(spec: str) -> tuple[float, float, float | None]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="run folder holding density.npz")
     parser.add_argument("--camera", action="append", default=[],
                         help="orbit:ANGLE,ELEV[,DIST] or a cameras.json file (repeatable)")
@@ -115,22 +123,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
     parser.add_argument("--out", type=Path, default=None, help="default: RUN_DIR/renders")
     args = parser.parse_args(argv)
-    try:
-        written = render(args)
-    except (FileNotFoundError, DensityFileError, ValueError, ImportError, OSError) as err:
-        print(f"render: {err}", file=sys.stderr)
-        return 1
-    for path in written:
-        print(path)
-    return 0
+
+    def run() -> None:
+        for path in render(args):
+            print(path)
+
+    return run_script(run, args.debug)
 
 
 def render(args: argparse.Namespace) -> list[Path]:
-    density, lo, hi, _ = load_density(args.run_dir)
     device = resolve_device(args.device, "--device")
+    for flag, least in (("width", 1), ("height", 1), ("turntable", 0), ("fps", 1)):
+        if not getattr(args, flag) >= least:
+            raise ValueError(f"--{flag}: got {getattr(args, flag)}; give a number >= {least}")
+    if not 0 < args.fov < 180:
+        raise ValueError(f"--fov: got {args.fov}; give a field of view between 0 and 180 degrees")
+    density, lo, hi, _ = load_density(args.run_dir)
     volume = torch.from_numpy(density).to(device)
-    out = args.out or args.run_dir / "renders"
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_folder(args.out or args.run_dir / "renders")
     up = UP[args.up]
     written: list[Path] = []
     for spec in args.camera:
@@ -144,7 +154,7 @@ def render(args: argparse.Namespace) -> list[Path]:
             names = [f"orbit_az{azimuth:g}_el{elevation:g}_d{distance:.3g}"]
         else:
             names, cams = read_cameras_json(Path(spec), args.view)
-            names = [f"camera_{name}" for name in names]  # <view>.png is the pipeline's held-out figure
+            names = [f"camera_{file_stem(name)}" for name in names]  # <view>.png is the pipeline's held-out figure
         images = render_views(volume, lo, hi, cams)
         for name, image in zip(names, images):
             written.append(write_png(out / f"{name}.png", to_rgb8(image, args.vmax)))
@@ -165,7 +175,7 @@ def render(args: argparse.Namespace) -> list[Path]:
             written.append(slices_figure(out / "slices.png", density, lo, hi,
                                          title=str(args.run_dir)))
         except ImportError as err:
-            print(f"render: slices.png skipped: {err}", file=sys.stderr)
+            print(f"flamerecon: slices.png skipped: {err}", file=sys.stderr)
     return written
 
 

@@ -59,7 +59,7 @@ CASES = {
     "unknown projector backend": (["projector.backend=bogus"], ConfigError,
                                   r"projector.backend: unknown backend 'bogus'"),
     "negative l1": (["solver.l1=-1"], ConfigError, r"solver.l1 must be >= 0"),
-    "bad grid resolution": (["grid.resolution=0"], ConfigError, r"grid: grid.resolution must be positive"),
+    "bad grid resolution": (["grid.resolution=0"], ConfigError, r"grid.resolution: got 0; grid.resolution must be"),
     "grid too big for memory": (["grid.resolution=100000"], MemoryBudgetError,
                                 (r"grid.resolution: a 66667x100000x66667 grid .* needs about .*TiB.*"
                                 r"smaller grid.resolution")),

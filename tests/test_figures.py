@@ -271,5 +271,5 @@ def test_render_script_errors_name_the_problem(tmp_path, capsys, args, message):
     save_density(tmp_path / "density.npz", _cube(4), *BOX, [])
     (tmp_path / "cams.json").write_text(json.dumps([{"name": "c", "width": 4, "height": 4}]))
     args = [str(tmp_path / "cams.json") if a == "CAMFILE" else a for a in args]
-    assert script.main([str(tmp_path), *args]) == 1
+    assert script.main([str(tmp_path), *args]) == 2
     assert message in capsys.readouterr().err

@@ -20,7 +20,7 @@ def test_failed_job_does_not_stop_the_sweep(tmp_path):
          "holdout=[cam99],[cam01]", f"hydra.sweep.dir={tmp_path}"],
         capture_output=True, text=True, env=env, timeout=300, check=False,
     )
-    assert proc.returncode == 1, proc.stderr
+    assert proc.returncode == 2, proc.stderr
     bad, good = tmp_path / "0", tmp_path / "1"
     assert "holdout: unknown view 'cam99'" in (bad / FAILED_FILE).read_text()
     assert not (bad / "density.npz").exists()

@@ -72,6 +72,7 @@ class Scene:
     def split(self, holdout) -> tuple[list[int], list[int]]:
         """Resolve ``holdout`` (view names or indices; None for the scene's default) into
         (train indices, held-out indices)."""
+        given = holdout is not None
         if holdout is None:
             holdout = list(self.default_holdout)
         if isinstance(holdout, (str, int)):
@@ -95,4 +96,31 @@ class Scene:
         train = [i for i in range(self.num_views) if i not in held]
         if not train:
             raise SceneError(f"holdout: {list(holdout)} holds out every view of scene '{self.name}'; keep at least one for training")
+        if not held:
+            why = "holdout=[]" if given else f"holdout=null and scene '{self.name}' names none by default"
+            raise SceneError(
+                f"holdout: no view is held out ({why}), so nothing would score the reconstruction; "
+                f"hold one out, e.g. holdout=[{self.views[-1]}] (views: {self.views})"
+            )
+        self.check_no_leak(train, held)
         return train, held
+
+    def check_no_leak(self, train: list[int], held: list[int]) -> None:
+        """Refuse a held-out view whose image is also among the training views (a capture
+        that lists one frame twice): its score would measure the fit, not a prediction."""
+        fitted = {}
+        for t in train:
+            fitted.setdefault(self._image_key(t), t)
+        for h in held:
+            t = fitted.get(self._image_key(h))
+            if t is not None and torch.equal(self.images[h], self.images[t]) and bool(
+                    self.images[h].amax() > self.images[h].amin()):
+                raise SceneError(
+                    f"{self.source or 'holdout'}: held-out view '{self.views[h]}' has the same image as "
+                    f"training view '{self.views[t]}'; drop the duplicate from the scene or hold out both"
+                )
+
+    def _image_key(self, v: int) -> tuple:
+        """A cheap fingerprint of view ``v``'s image (equal images give equal keys)."""
+        img = self.images[v]
+        return (tuple(img.shape), float(img.double().sum()), float((img.double() ** 2).sum()))

@@ -20,6 +20,7 @@ from ..photometry import linearize
 from ..resources import checkout_root
 from ..silhouettes import estimate_bbox, silhouettes
 from .base import Scene, SceneError
+from .frames import is_link_loop
 
 
 def option(cfg, key: str, default=None):
@@ -47,6 +48,9 @@ def resolve_root(root, field: str = "scene.root") -> Path:
     for candidate in candidates:
         if candidate.exists():
             return candidate.resolve()
+        if is_link_loop(candidate):
+            raise SceneError(f"config: {field}: '{root}' is a symbolic link loop ({candidate} leads back "
+                             "to itself); point it at the data folder")
     tried = ", ".join(str(c) for c in dict.fromkeys(candidates))
     raise SceneError(f"config: {field}: '{root}' does not exist (tried {tried})")
 

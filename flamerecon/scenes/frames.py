@@ -13,6 +13,8 @@ an alpha channel is composited over black (the emission model's empty background
 
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import cv2
@@ -52,6 +54,7 @@ def read_image(path: str | Path) -> np.ndarray:
     """Decode one image file to float32 (H, W, C) in [0, 1] (alpha composited over black)."""
     path = Path(path)
     if not path.is_file():
+        refuse_link_loop(path)
         raise SceneError(f"{path}: image file not found")
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.size == 0:
@@ -104,13 +107,33 @@ def read_video_frame(path: str | Path, frame: int) -> np.ndarray:
     return _to_float_rgb(raw, path)
 
 
+def is_link_loop(path: str | Path) -> bool:
+    """Whether ``path`` is a symbolic link that never resolves (a loop: ELOOP)."""
+    try:
+        os.stat(path)
+    except OSError as err:
+        return err.errno == errno.ELOOP
+    return False
+
+
+def refuse_link_loop(*paths: str | Path) -> None:
+    """SceneError naming the first of ``paths`` that is a symbolic link loop."""
+    for path in paths:
+        if is_link_loop(path):
+            raise SceneError(
+                f"{path}: a symbolic link loop (following it leads back to itself); point the link "
+                "at the real video, image or frame folder"
+            )
+
+
 def frame_source(root: str | Path, name: str) -> Path:
     """The video file or frame folder holding camera ``name``'s frames under ``root``."""
     root = Path(root)
     direct = root / name
+    stem = Path(name).stem if Path(name).suffix.lower() in VIDEO_EXTENSIONS else name
+    refuse_link_loop(direct, root / stem, *(root / f"{stem}{ext}" for ext in VIDEO_EXTENSIONS))
     if direct.is_file() and direct.suffix.lower() in VIDEO_EXTENSIONS:
         return direct
-    stem = Path(name).stem if Path(name).suffix.lower() in VIDEO_EXTENSIONS else name
     folder = root / stem
     if folder.is_dir():
         return folder
@@ -152,6 +175,7 @@ def read_path_frame(base: str | Path, relpath: str, frame: int) -> tuple[np.ndar
     frame number is then ignored), an image named without its extension (NeRF's
     ``./train/r_0``), a video, or a folder of numbered frames."""
     path = Path(base) / relpath
+    refuse_link_loop(path, *(path.with_name(path.name + ext) for ext in IMAGE_EXTENSIONS))
     if path.is_dir():
         file = frame_file(path, frame)
         return read_image(file), file

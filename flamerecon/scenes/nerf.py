@@ -18,6 +18,7 @@ names held out by default), ``silhouette``.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +82,13 @@ def _view_names(paths: list[str]) -> list[str]:
     return [str(Path(p).with_suffix("")).lstrip("./") for p in paths]
 
 
+def _duplicate(path, where: str, file_path: str, first: int, source=None, what: str = "") -> str:
+    """The message for a frame that repeats an earlier one (a held-out copy would leak)."""
+    same = what or (f"the image {source}" if source is not None else f"'{file_path}'")
+    return (f"{path}: {where}file_path: '{file_path}' is a duplicate: {same} is already "
+            f"frames[{first}]; list each view once (a held-out view's copy would be fitted)")
+
+
 @register_scene("nerf")
 def load_nerf(cfg) -> Scene:
     """Load a ``transforms.json`` capture as a Scene (views in file order)."""
@@ -91,6 +99,7 @@ def load_nerf(cfg) -> Scene:
     folder = path.parent
     frame = int(option(cfg, "frame", 0))
     images, Ks, w2cs, sources, file_paths = [], [], [], [], []
+    seen: dict[str, int] = {}  # normalized file_path -> first frame index
     for i, entry in enumerate(data["frames"]):
         where = f"frames[{i}]."
         if not isinstance(entry, dict):
@@ -98,9 +107,16 @@ def load_nerf(cfg) -> Scene:
         file_path = entry.get("file_path")
         if not isinstance(file_path, str) or not file_path:
             raise SceneError(f"{path}: {where}file_path: missing")
+        key = os.path.normpath(file_path)
+        if key in seen:
+            raise SceneError(_duplicate(path, where, file_path, seen[key]))
+        seen[key] = i
         params = {**{k: v for k, v in data.items() if k != "frames"}, **entry}
         c2w = check_rigid(entry.get("transform_matrix"), path, f"{where}transform_matrix")
         image, source = read_path_frame(folder, file_path, frame)
+        same = [k for k, earlier in enumerate(sources) if Path(earlier).resolve() == Path(source).resolve()]
+        if same:
+            raise SceneError(_duplicate(path, where, file_path, same[0], source))
         H, W = image.shape[:2]
         if "w" in params or "h" in params:
             check_image_size(
@@ -115,6 +131,10 @@ def load_nerf(cfg) -> Scene:
         sources.append(source)
         file_paths.append(file_path)
     names = _view_names(file_paths)
+    for i, name in enumerate(names):
+        if names.index(name) != i:
+            raise SceneError(_duplicate(path, f"frames[{i}].", file_paths[i], names.index(name),
+                                        what=f"view name '{name}'"))
     file_box = box_from_value(data["bbox"], path, "bbox") if "bbox" in data else None
     holdout = list(option(cfg, "holdout", []))
     return make_scene(cfg, path, "nerf", names, images, Ks, w2cs, sources, file_box, holdout, frame)

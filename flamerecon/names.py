@@ -1,0 +1,28 @@
+"""View names as file names: a name becomes ``renders/<name>.png`` and the like, so a NeRF view
+named by its relative path (``train/r_0``) must not reach into another folder."""
+
+from __future__ import annotations
+
+import re
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9._+=@,-]+")
+
+
+def file_stem(name: str) -> str:
+    """``name`` with path separators and other characters unsafe in file names replaced by
+    ``_`` (``train/r_0`` -> ``train_r_0``), without leading dots; never empty."""
+    stem = _UNSAFE.sub("_", str(name)).lstrip(".")
+    return stem or "_"
+
+
+def file_stems(names: list[str]) -> list[str]:
+    """:func:`file_stem` of each name, made unique (``a/b`` and ``a_b``: ``a_b``, ``a_b-2``)."""
+    out: list[str] = []
+    for name in names:
+        base = stem = file_stem(name)
+        n = 1
+        while stem in out:
+            n += 1
+            stem = f"{base}-{n}"
+        out.append(stem)
+    return out
