@@ -215,7 +215,8 @@ def choose_weights(cfg: DictConfig, setup: Setup) -> tuple[DictConfig, dict | No
     over the training views prefers (:func:`~flamerecon.weight_selection.select_weights`), and
     the selection's record for metrics.json; else ``cfg`` unchanged and None."""
     node = cfg.get("select") or {}
-    candidates = OmegaConf.to_container(node.get("candidates") or [], resolve=True)
+    candidates = node.get("candidates")
+    candidates = OmegaConf.to_container(candidates, resolve=True) if candidates else []
     if not candidates:
         return cfg, None
     if cfg.solver.name not in SOLVERS:
@@ -382,6 +383,8 @@ def summary_table(metrics: dict) -> str:
         ("held-out PSNR [dB]", (f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
                                f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})")),
         ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
+        ("  appearance-aligned [dB]", f"{mean_of(metrics['heldout'], 'psnr_aligned'):.2f}  "
+                                      "(gain fitted on the left half, PSNR of the right half)"),
     ]
     held = list(metrics["heldout"].values())
     if held and "psnr_silhouette" in held[0]:
