@@ -211,11 +211,13 @@ def debias_options(cfg: DictConfig) -> DebiasOptions:
 
 
 def choose_weights(cfg: DictConfig, setup: Setup) -> tuple[DictConfig, dict | None]:
-    """With ``select.candidates``: the config with the solver weights that leave-one-view-out
-    over the training views prefers (:func:`~flamerecon.weight_selection.select_weights`), and
-    the selection's record for metrics.json; else ``cfg`` unchanged and None."""
+    """With ``select.auto`` and candidates for the run's solver (``select.candidates.<solver>``):
+    the config with the solver weights that leave-one-view-out over the training views prefers
+    (:func:`~flamerecon.weight_selection.select_weights`), and the selection's record for
+    metrics.json; else ``cfg`` unchanged and None."""
     node = cfg.get("select") or {}
-    candidates = node.get("candidates")
+    table = node.get("candidates") or {}
+    candidates = table.get(cfg.solver.name) if bool(node.get("auto", False)) else None
     candidates = OmegaConf.to_container(candidates, resolve=True) if candidates else []
     if not candidates:
         return cfg, None
@@ -227,14 +229,14 @@ def choose_weights(cfg: DictConfig, setup: Setup) -> tuple[DictConfig, dict | No
     except (TypeError, ValueError) as err:
         raise ConfigError(f"select: {err}") from err
     if len(setup.train) < 2:
-        raise ConfigError(f"select.candidates: choosing weights needs at least two training views, "
-                          f"got {len(setup.train)}; set select.candidates=[]")
+        raise ConfigError(f"select.auto: choosing weights needs at least two training views, "
+                          f"got {len(setup.train)}; set select.auto=false")
     base = OmegaConf.to_container(cfg.solver, resolve=True)
     base.pop("name")
     for c in options.candidates:
         unknown = sorted(set(c) - set(base))
         if unknown:
-            raise ConfigError(f"select.candidates: {unknown} are not options of solver "
+            raise ConfigError(f"select.candidates.{cfg.solver.name}: {unknown} are not options of solver "
                               f"'{cfg.solver.name}'; valid: {sorted(base)}")
     images = setup.scene.images[setup.train].to(setup.pixels)
     energy = (images.double() ** 2).sum((-2, -1))  # (T, C)

@@ -135,8 +135,8 @@ def test_a_fold_score_is_the_psnr_of_the_real_render_of_the_left_out_camera(tiny
 
 def test_the_run_uses_the_weights_that_leave_one_view_out_prefers(tiny):
     cfg, scene, setup = tiny
-    candidates = ["{l1_rel: 0.3}", "{l1_rel: 0.001}"]  # one far too strong, one mild
-    chosen_cfg, record = choose_weights(config(f"select.candidates=[{','.join(candidates)}]",
+    candidates = "select.candidates.fista=[{l1_rel: 0.3},{l1_rel: 0.001}]"  # too strong, mild
+    chosen_cfg, record = choose_weights(config("solver=fista", "select.auto=true", candidates,
                                                "select.folds=2"), setup)
     psnrs = [row["psnr"] for row in record["candidates"]]
     assert all(math.isfinite(p) for p in psnrs)
@@ -144,11 +144,18 @@ def test_the_run_uses_the_weights_that_leave_one_view_out_prefers(tiny):
     assert record["chosen"] == best
     assert float(chosen_cfg.solver.l1_rel) == best["l1_rel"]
     assert best == {"l1_rel": 0.001}  # the strong weight zeroes most of the flame
-    result, l1, _ = solve(config(f"select.candidates=[{','.join(candidates)}]", "select.folds=2"), setup)
+    result, l1, _ = solve(config("solver=fista", "select.auto=true", candidates, "select.folds=2"), setup)
     assert l1 == pytest.approx(0.001 * float(setup.operator.adjoint(setup.pixels).max()), rel=1e-5)
 
 
 def test_selection_refuses_a_misspelt_candidate_key(tiny):
     cfg, scene, setup = tiny
     with pytest.raises(ConfigError, match="select"):
-        choose_weights(config("select.candidates=[{l1_rell: 0.1}]"), setup)
+        choose_weights(config("solver=fista", "select.auto=true", "select.candidates.fista=[{l1_rell: 0.1}]"),
+                       setup)
+
+
+def test_selection_is_off_for_a_solver_without_candidates(tiny):
+    cfg, scene, setup = tiny
+    same, record = choose_weights(config("solver=cgls", "select.auto=true"), setup)
+    assert record is None and same.solver == config("solver=cgls").solver
