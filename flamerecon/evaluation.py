@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from .atomic import atomic_write_bytes, make_folder
 from .cameras import camera_subset, cameras_to
 from .grid import VoxelGrid
-from .metrics import psnr, resample_to, ssim, volume_errors
+from .metrics import psnr, psnr_aligned, resample_to, ssim, volume_errors
 from .names import file_stems
 from .photometry import apply_gain_offset
 from .projector import camera_rays, integrate_dense, ray_box, render_image, support_box
@@ -115,6 +115,7 @@ def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
             "psnr": psnr(img, captured),
             "ssim": ssim(img, captured),
             "psnr_black": psnr(torch.zeros_like(captured), captured),
+            "psnr_aligned": psnr_aligned(img, captured),
         }
         if masks is not None:
             out[scene.views[v]].update(masked_scores(img, captured, masks[k]))

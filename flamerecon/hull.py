@@ -3,6 +3,8 @@ every training view."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
@@ -42,3 +44,35 @@ def visual_hull(
         k = 2 * int(margin_voxels) + 1
         hull = F.max_pool3d(hull[None, None].float(), k, stride=1, padding=int(margin_voxels))[0, 0] > 0
     return hull
+
+
+def hull_footprint(grid: VoxelGrid, cams: PinholeCamera, hull: torch.Tensor) -> torch.Tensor:
+    """Pixels whose ray can meet the trilinear support of the hull: (B, H, W) bool.
+
+    The interpolant of values on the hull voxels is nonzero only inside the cubes of two voxels'
+    side around their centres; a pixel is kept when it lies within the projected radius of such
+    a cube (the cube's circumscribed sphere, at the voxel's depth) of a projected hull centre.
+    Conservative: a kept ray may still miss every cube (its operator row is then empty).
+    """
+    device = hull.device
+    B = cams.batch_size
+    H, W = int(cams.height[0]), int(cams.width[0])
+    out = torch.zeros(B, H * W, dtype=torch.bool, device=device)
+    centers = grid.centers(device).reshape(-1, 3)[hull.reshape(-1)]
+    if centers.shape[0] == 0:
+        return out.reshape(B, H, W)
+    radius_world = float(grid.voxel_size(device).norm())  # half-diagonal of the 2-voxel cube
+    focal = float(cams.intrinsics[:, :2, :2].diagonal(dim1=-2, dim2=-1).abs().max())
+    uv, depth = project_points(cams, centers)
+    front = depth > 1e-9
+    if not bool(front.any()):
+        return out.reshape(B, H, W)
+    r = math.ceil(focal * radius_world / float(depth[front].min())) + 1
+    u, v = torch.floor(uv[..., 0]).long(), torch.floor(uv[..., 1]).long()
+    for b in range(B):
+        ok = front[b] & (u[b] >= -r) & (u[b] < W + r) & (v[b] >= -r) & (v[b] < H + r)
+        hit = torch.zeros(H + 2 * r, W + 2 * r, device=device)
+        hit[v[b][ok] + r, u[b][ok] + r] = 1.0
+        grown = F.max_pool2d(hit[None, None], 2 * r + 1, stride=1, padding=r)[0, 0]
+        out[b] = grown[r:H + r, r:W + r].reshape(-1) > 0
+    return out.reshape(B, H, W)

@@ -14,6 +14,18 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> floa
     return math.inf if mse == 0 else 10.0 * math.log10(max_val**2 / mse)
 
 
+def psnr_aligned(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> float:
+    """Appearance-aligned PSNR (NeRF in the Wild's protocol): one gain fitted by least squares
+    on the left half of the image (C, H, W), PSNR on the right half. Not the headline score: it
+    forgives a held-out camera's unknown exposure."""
+    W = pred.shape[-1]
+    left, right = slice(0, W // 2), slice(W // 2, W)
+    p, t = pred[..., left].double(), target[..., left].double()
+    den = float((p * p).sum())
+    gain = float((p * t).sum()) / den if den > 0 else 1.0
+    return psnr(pred[..., right] * gain, target[..., right], max_val)
+
+
 def ssim(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> float:
     """Mean SSIM (11x11 Gaussian window) of one image (C, H, W)."""
     return float(kornia.metrics.ssim(pred.clamp(0, max_val)[None], target[None], 11, max_val=max_val).mean())

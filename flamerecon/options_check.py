@@ -129,6 +129,19 @@ _box = list_of(list_of(number(), 3), 2, "[[xmin, ymin, zmin], [xmax, ymax, zmax]
 _view = either(text, integer())
 _views = either(_view, list_of(_view, what="a list of view names or indices"))
 
+def candidate_table(value) -> str | None:
+    """``select.candidates``: {solver name: [ {option: value}, ... ]}."""
+    want = "a mapping of solver names to lists of option mappings, e.g. {tv: [{tv: 0.01}]}"
+    if not isinstance(value, dict):
+        return want
+    for overrides in value.values():
+        if overrides is None:
+            continue
+        if not isinstance(overrides, (list, tuple)) or not all(isinstance(o, dict) for o in overrides):
+            return want
+    return None
+
+
 #: dotted key -> rule, for every option of conf/ (train.yaml and each group).
 RULES: dict[str, Rule] = {
     # train.yaml
@@ -148,6 +161,13 @@ RULES: dict[str, Rule] = {
     "projector.backend": Rule(choice("auto", "assembled", "matrix_free")),
     "projector.step": Rule(number(0.01)),  # voxels; finer only multiplies samples (and memory)
     "projector.max_memory_gb": Rule(number(0, lo_open=True), null=True),
+    "projector.rays": Rule(choice("silhouette", "hull")),
+    "debias.method": Rule(choice("none", "gain", "refit")),
+    "debias.iterations": Rule(integer(1)),
+    "select.auto": Rule(boolean),
+    "select.candidates": Rule(candidate_table),
+    "select.folds": Rule(integer(2)),
+    "select.iterations": Rule(integer(1), null=True),
     "silhouette.method": Rule(choice("otsu", "threshold")),
     "silhouette.threshold": Rule(number(0), null=True),
     "silhouette.speck_px": Rule(integer(0)),

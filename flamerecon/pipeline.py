@@ -28,6 +28,7 @@ from .checks import (
     explain_empty_hull,
     memory_budget,
 )
+from .debias import DebiasOptions, debias
 from .device import resolve_device
 from .errors import ConfigError, Interrupted, ResumeError, RunFolderError, SolveDiverged
 from .evaluation import native_scores, render_scene_views, score, score_views, write_renders
@@ -35,7 +36,7 @@ from .export import check_exporters, export_run, load_density, save_density
 from .figures import top_view
 from .grid import VoxelGrid
 from .guard import SolveGuard, StopSolve, stop_signals
-from .hull import visual_hull
+from .hull import hull_footprint, visual_hull
 from .levels import level_grids, level_iters
 from .metrics import resample_to
 from .options_check import check_options
@@ -46,6 +47,7 @@ from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
 from .solvers import SOLVERS, Problem, Solver, SolveResult, make_solver, resolve_l1
 from .tb_logging import RunWriter, side_by_side
+from .weight_selection import SelectionOptions, select_weights
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +105,8 @@ def prepare(cfg: DictConfig, scene: Scene, device: torch.device, grid: VoxelGrid
     if not bool(hull.any()):
         raise explain_empty_hull(scene, grid, cams, masks[train], train, threshold, margin)
     voxel_index = hull.reshape(-1).nonzero().squeeze(1)
-    rays, flat = camera_rays(cams, masks[train])
+    rows = fit_pixels(cfg.projector.get("rays", "silhouette"), grid, cams, hull, masks[train])
+    rays, flat = camera_rays(cams, rows)
     C = images.shape[1]
     pixels = images[train].permute(0, 2, 3, 1).reshape(-1, C)[flat].contiguous()
     row_view = flat // (images.shape[-2] * images.shape[-1])
@@ -112,6 +115,17 @@ def prepare(cfg: DictConfig, scene: Scene, device: torch.device, grid: VoxelGrid
     operator = make_operator(backend, grid, rays, voxel_index, step)
     return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view,
                  time.perf_counter() - started)
+
+
+def fit_pixels(which: str, grid: VoxelGrid, cams, hull: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """The training pixels (T, H, W) bool whose rays enter the operator: ``silhouette``, the
+    silhouette pixels only; ``hull``, also every background pixel whose ray can meet the hull
+    (its zero is a constraint: no hull voxel is left unconstrained)."""
+    if which == "silhouette":
+        return masks
+    if which == "hull":
+        return masks | hull_footprint(grid, cams, hull)
+    raise ConfigError(f"projector.rays: unknown value '{which}'; choose silhouette or hull")
 
 
 def make_problem(cfg: DictConfig, setup: Setup) -> tuple[Problem, Solver, float]:
@@ -183,13 +197,74 @@ def fit_photometry(cfg: DictConfig, setup: Setup, problem: Problem, solver: Solv
     return result, Photometry(gain.cpu(), offset.cpu(), iterations)
 
 
+def debias_options(cfg: DictConfig) -> DebiasOptions:
+    node = cfg.get("debias") or {}
+    try:
+        return DebiasOptions(str(node.get("method", "none")), int(node.get("iterations", 10)))
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
+
+
+def choose_weights(cfg: DictConfig, setup: Setup) -> tuple[DictConfig, dict | None]:
+    """With ``select.auto`` and candidates for the run's solver (``select.candidates.<solver>``):
+    the config with the solver weights that leave-one-view-out over the training views prefers
+    (:func:`~flamerecon.weight_selection.select_weights`), and the selection's record for
+    metrics.json; else ``cfg`` unchanged and None."""
+    node = cfg.get("select") or {}
+    table = node.get("candidates") or {}
+    candidates = table.get(cfg.solver.name) if bool(node.get("auto", False)) else None
+    candidates = OmegaConf.to_container(candidates, resolve=True) if candidates else []
+    if not candidates:
+        return cfg, None
+    if cfg.solver.name not in SOLVERS:
+        raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
+    try:
+        options = SelectionOptions(tuple(dict(c) for c in candidates), int(node.get("folds", 4)),
+                                   None if node.get("iterations") is None else int(node.iterations))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"select: {err}") from err
+    if len(setup.train) < 2:
+        raise ConfigError(f"select.auto: choosing weights needs at least two training views, "
+                          f"got {len(setup.train)}; set select.auto=false")
+    base = OmegaConf.to_container(cfg.solver, resolve=True)
+    base.pop("name")
+    for c in options.candidates:
+        unknown = sorted(set(c) - set(base))
+        if unknown:
+            raise ConfigError(f"select.candidates.{cfg.solver.name}: {unknown} are not options of solver "
+                              f"'{cfg.solver.name}'; valid: {sorted(base)}")
+    images = setup.scene.images[setup.train].to(setup.pixels)
+    energy = (images.double() ** 2).sum((-2, -1))  # (T, C)
+    H, W = setup.scene.image_size
+    try:
+        found = select_weights(cfg.solver.name, base, options, debias_options(cfg), setup.operator,
+                               setup.pixels, setup.row_view, energy, H * W,
+                               [setup.scene.views[v] for v in setup.train],
+                               {"grid_shape": setup.grid.shape, "voxel_index": setup.voxel_index})
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"select.candidates: {err}") from err
+    log.info("weights chosen by leave-one-view-out over the training views: %s", found.chosen)
+    return OmegaConf.merge(cfg, {"solver": found.chosen}), found.record()
+
+
+def finish_solve(cfg: DictConfig, setup: Setup, result: SolveResult) -> tuple[SolveResult, dict]:
+    """The ``debias`` step after the solve (and photometry): the result with the debiased
+    density, and the record for metrics.json."""
+    x, record = debias(debias_options(cfg), setup.operator, setup.pixels, result.x)
+    result.x = x
+    return result, record
+
+
 def solve(cfg: DictConfig, setup: Setup, x0: torch.Tensor | None = None
           ) -> tuple[SolveResult, float, Photometry | None]:
     """Solve ``setup`` as ``cfg`` says, without a run folder (no callback, checkpoints or
-    logging): (result, absolute l1 weight, fitted photometry or None)."""
+    logging): weights chosen (``select``), solve, photometry, ``debias``; returns (result,
+    absolute l1 weight, fitted photometry or None)."""
+    cfg, _ = choose_weights(cfg, setup)
     problem, solver, l1 = make_problem(cfg, setup)
     result = solver.solve(problem, x0=x0)
     result, photometry = fit_photometry(cfg, setup, problem, solver, result)
+    result, _ = finish_solve(cfg, setup, result)
     return result, l1, photometry
 
 
@@ -308,6 +383,8 @@ def summary_table(metrics: dict) -> str:
         ("held-out PSNR [dB]", (f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
                                f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})")),
         ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
+        ("  appearance-aligned [dB]", (f"{mean_of(metrics['heldout'], 'psnr_aligned'):.2f}  "
+                                      "(gain fitted on the left half, PSNR of the right half)")),
     ]
     held = list(metrics["heldout"].values())
     if held and "psnr_silhouette" in held[0]:
@@ -463,6 +540,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
     try:
         volume = coarse_levels(cfg, scene, device, volume, 0 if ckpt is None else at, solve_level)
         setup = prepare(cfg, scene, device, fine)
+        cfg, selection = choose_weights(cfg, setup)
         problem, solver, l1 = make_problem(cfg, setup)
         meta = problem_meta(cfg, setup, l1, final, plan)
         here = ckpt if ckpt is not None and at == final else None
@@ -474,13 +552,14 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
         del volume
         result, stopped, monitor = guarded_solve(cfg, run_dir, setup, problem, solver, writer, device,
                                                  meta, x0, here, final, {"level_records": records})
-        photometry = None
+        photometry, debiased = None, None
         if stopped is None:
             result, photometry = fit_photometry(cfg, setup, problem, solver, result)
+            result, debiased = finish_solve(cfg, setup, result)
         if grids:
             records.append(level_record(setup, l1, result))
         metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped,
-                                photometry, records)
+                                photometry, records, {"selection": selection, "debias": debiased})
     finally:
         writer.close()
     if stopped is not None:
@@ -588,9 +667,11 @@ def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.
 
 def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, writer: RunWriter,
                   monitor: Monitor, result: SolveResult, l1: float, stopped: StopSolve | None,
-                  photometry: Photometry | None = None, levels: list[dict] | None = None) -> dict:
+                  photometry: Photometry | None = None, levels: list[dict] | None = None,
+                  steps: dict | None = None) -> dict:
     """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries;
-    ``levels``: one :func:`level_record` per grid, coarsest first (only with ``grid.levels``)."""
+    ``levels``: one :func:`level_record` per grid, coarsest first (only with ``grid.levels``);
+    ``steps``: the records of the weight selection and the debiasing (None where off)."""
     volume = setup.volume(result.x)
     solver_info = {
         "name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
@@ -604,6 +685,7 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
         solver_info["stopped"] = {"iteration": stopped.iteration, "reason": stopped.detail}
     if levels:
         solver_info["levels"] = levels
+    solver_info.update({k: v for k, v in (steps or {}).items() if v is not None})
     per_view = None
     if photometry is not None:
         solver_info["photometry"] = {"rounds": len(photometry.iterations), "iterations": photometry.iterations}

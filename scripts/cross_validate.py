@@ -2,13 +2,16 @@
 
     python scripts/cross_validate.py scene=scalarflow --exclude train02 \\
         --sweep solver.smooth=0.1,0.3,1 --sweep solver.l1_rel=0.01,0.05 \\
-        --average scene.frame=20,40,59 [--test] [--out DIR]
+        --average scene.frame=20,40,59 [--report scene.frame=10,66] [--test] [--out DIR]
 
 Every combination of the ``--sweep`` values is scored by leave-one-view-out over the views not
 in ``--exclude`` (those are never fitted), averaged over folds and over the ``--average``
 values (e.g. frames), and ranked by mean held-out PSNR. With ``--test`` each setting is also
 fitted on every view but the excluded ones, and the excluded views are scored: that column is
-printed for reference and never used for the ranking. Writes DIR/cv.json.
+printed for reference and never used for the ranking. ``--report`` holds out frames as well
+as views: the settings are ranked on the ``--average`` frames only, and the best setting and
+the first one (the baseline to beat) are then scored the same way on the ``--report`` values,
+which chose nothing. Writes DIR/cv.json.
 """
 
 from __future__ import annotations
@@ -86,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="key=v1,v2,...: values to compare (repeat for a grid)")
     parser.add_argument("--average", type=key_values, action="append", default=[],
                         help="key=v1,v2,...: values every setting is averaged over (e.g. frames)")
+    parser.add_argument("--report", type=key_values, action="append", default=[],
+                        help="key=v1,v2,...: values (e.g. frames) scored after the choice, never used for it")
     parser.add_argument("--exclude", default="", help="comma-separated views never fitted")
     parser.add_argument("--test", action="store_true", help="also score the excluded views")
     parser.add_argument("--out", type=Path, help="output folder (default outputs/cv/<date>/<time>)")
@@ -95,8 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     sweep_keys = [k for k, _ in args.sweep]
     settings = [[f"{k}={v}" for k, v in zip(sweep_keys, combo)]
                 for combo in itertools.product(*[vals for _, vals in args.sweep])]
-    averages = [[f"{k}={v}" for k, v in zip([k for k, _ in args.average], combo)]
-                for combo in itertools.product(*[vals for _, vals in args.average])] if args.average else []
+    averages, reports = combos(args.average), combos(args.report)
     rows = []
 
     def run() -> None:
@@ -107,8 +111,22 @@ def main(argv: list[str] | None = None) -> int:
                   + (f", test {row['test_psnr']:.2f} dB" if "test_psnr" in row else ""), flush=True)
             write_json_atomic(out / "cv.json", {"exclude": exclude, "settings": rows})
         print(f"cross-validation ({len(rows)} settings): {out / 'cv.json'}\n{table(rows, sweep_keys)}")
+        if reports:
+            best = max(range(len(rows)), key=lambda i: rows[i]["cv_psnr"])
+            held = [score_setting([*args.overrides, *settings[i]], reports, exclude, args.test,
+                                  out / f"report{i:03d}") for i in sorted({0, best})]
+            write_json_atomic(out / "cv.json", {"exclude": exclude, "settings": rows, "report": held})
+            print(f"on {' '.join(' '.join(r) for r in reports)} (chose nothing):\n{table(held, sweep_keys)}")
 
     return run_script(run, args.debug)
+
+
+def combos(pairs: list[tuple[str, list[str]]]) -> list[list[str]]:
+    """Every combination of ``key=v1,v2`` values as override lists (empty without pairs)."""
+    if not pairs:
+        return []
+    keys = [k for k, _ in pairs]
+    return [[f"{k}={v}" for k, v in zip(keys, combo)] for combo in itertools.product(*[v for _, v in pairs])]
 
 
 if __name__ == "__main__":

@@ -43,3 +43,18 @@ def test_cross_validation_never_fits_the_excluded_view_and_averages_its_folds(tm
 def test_a_malformed_sweep_is_refused_by_argparse():
     with pytest.raises(SystemExit):
         cross_validate.main(["--sweep", "solver.l1_rel"])
+
+
+def test_report_frames_score_the_choice_and_never_enter_the_ranking(tmp_path, capsys):
+    out = tmp_path / "cv"
+    code = cross_validate.main([*TINY, "--exclude", "cam04", "--sweep", "solver.l1_rel=0.3,0",
+                                "--average", "scene.frame=0", "--report", "scene.frame=2",
+                                "--out", str(out)])
+    assert code == 0
+    record = json.loads((out / "cv.json").read_text())
+    assert all(list(s["parts"]) == ["scene.frame=0"] for s in record["settings"])
+    best = max(record["settings"], key=lambda s: s["cv_psnr"])["overrides"]
+    reported = [r["overrides"] for r in record["report"]]
+    assert best in reported and record["settings"][0]["overrides"] in reported
+    assert all(list(r["parts"]) == ["scene.frame=2"] for r in record["report"])
+    assert "(chose nothing)" in capsys.readouterr().out

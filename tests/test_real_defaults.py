@@ -37,3 +37,22 @@ def test_the_synthetic_defaults_are_unchanged():
     cfg = composed()
     assert (cfg.scene.name, cfg.solver.name, cfg.grid.resolution) == ("synthetic", "fista", 64)
     assert cfg.solver.l1_rel == 0.001 and cfg.photometry.fit_gain is False
+
+
+def test_scalarflow_debiases_its_fixed_cross_validated_weights():
+    cfg = composed("scene=scalarflow")
+    assert cfg.debias.method == "gain" and cfg.select.auto is False
+
+
+def test_other_captures_choose_their_own_weights_and_the_paper_method_is_one_switch_away():
+    for scene in ("opencv", "nerf"):
+        cfg = composed(f"scene={scene}", "scene.root=/data")
+        assert (cfg.solver.name, cfg.select.auto, cfg.debias.method, cfg.projector.rays) == (
+            "tv", True, "gain", "hull")
+        assert cfg.scene.name == scene and cfg.scene.root == "/data"
+        assert len(cfg.select.candidates.tv) >= 3  # a path of weights, strongest first
+        first, last = cfg.select.candidates.tv[0], cfg.select.candidates.tv[-1]
+        assert first.tv > last.tv and first.l1_rel > last.l1_rel
+        paper = composed(f"scene={scene}", "scene.root=/data", "solver=fista", "select.auto=false",
+                         "debias.method=none")
+        assert (paper.solver.name, paper.select.auto, paper.debias.method) == ("fista", False, "none")
