@@ -27,7 +27,8 @@ SMALLER = ["scene.width=24", "scene.height=18", "scene.phantom_resolution=16", "
 #: the real config shrunk to seconds: 5 cameras at 48x36, a 32-cell phantom, a 16-cell grid.
 TINY = [
     "scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",
-    "grid.resolution=16", "solver.max_iters=30", "log.eval_every=10", "device=cpu",
+    "grid.resolution=16", "solver.max_iters=30", "log.eval_every=10", "log.eval_share=null",
+    "device=cpu",
 ]
 VIEWS = [f"cam{i:02d}" for i in range(5)]
 HELDOUT, TRAIN = ["cam04"], VIEWS[:4]  # the scene's default holdout: the last camera

@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from flamerecon.solvers import Problem, make_solver, resolve_l1
-
 from tests.test_solvers import csr, objective, sklearn_objective, tiny_problem
 
 
