@@ -179,6 +179,7 @@ RULES: dict[str, Rule] = {
     "photometry.fit_offset": Rule(boolean),
     "photometry.rounds": Rule(integer(1)),
     "log.eval_every": Rule(integer(0)),
+    "log.eval_share": Rule(number(0, 1, lo_open=True), null=True),
     "checkpoint.every": Rule(integer(0)),
     "checkpoint.divergence_factor": Rule(number(0)),
     # solver/*.yaml
@@ -200,6 +201,9 @@ RULES: dict[str, Rule] = {
     "solver.relax": Rule(number(0, 2, lo_open=True, hi_open=True)),
     "solver.tv": Rule(number(0)),
     "solver.dual_step": Rule(number(0, lo_open=True), null=True),
+    "solver.warm_iters": Rule(integer(0)),
+    "solver.cg_iters": Rule(integer(1)),
+    "solver.cg_tol": Rule(number(0, 1, lo_open=True, hi_open=True)),
     # scene/*.yaml
     "scene.name": Rule(text),
     "scene.root": Rule(text),

@@ -68,6 +68,7 @@ class Setup:
     step: float
     row_view: torch.Tensor | None = None  # (N,) long: position in ``train`` of each pixel row
     seconds: float = 0.0  # wall time it took to build (hull, rays, operator)
+    assembly_seconds: float = 0.0  # of which the operator (backend choice and assembly)
 
     def volume(self, x: torch.Tensor) -> torch.Tensor:
         """Hull values (M, C) -> dense density (C, nz, ny, nx)."""
@@ -111,10 +112,12 @@ def prepare(cfg: DictConfig, scene: Scene, device: torch.device, grid: VoxelGrid
     pixels = images[train].permute(0, 2, 3, 1).reshape(-1, C)[flat].contiguous()
     row_view = flat // (images.shape[-2] * images.shape[-1])
     step = float(cfg.projector.step)
+    assembly = time.perf_counter()
     backend = choose_backend(cfg.projector.backend, grid, rays, voxel_index, step, device, budget)
     operator = make_operator(backend, grid, rays, voxel_index, step)
+    now = time.perf_counter()
     return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view,
-                 time.perf_counter() - started)
+                 now - started, now - assembly)
 
 
 def fit_pixels(which: str, grid: VoxelGrid, cams, hull: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
@@ -409,6 +412,8 @@ def summary_table(metrics: dict) -> str:
             + (f"; relative duality gap {s['rel_gap']:.1e})" if "rel_gap" in s else ")"))),
         ("seconds", f"{s['seconds']:.2f}"),
     ]
+    if "timing" in metrics:
+        rows.append(("time split [s]", time_split(metrics["timing"])))
     if "levels" in s:
         rows.append(("grid levels", "; ".join(
             f"{cells_of(r['resolution'])}: {r['iterations']} it, "
@@ -418,9 +423,22 @@ def summary_table(metrics: dict) -> str:
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
 
 
+def time_split(timing: dict[str, float]) -> str:
+    """metrics.json's ``timing`` as one line, e.g. ``scene 0.4, setup 1.2 (assembly 0.8), ...``."""
+    parts = [f"{k.replace('_', ' ')} {v:.2f}" + (f" (assembly {timing['assembly']:.2f})" if k == "setup" else "")
+             for k, v in timing.items() if k != "assembly"]
+    return ", ".join(parts)
+
+
 class Monitor:
     """Solver callback: progress bar, TensorBoard scalars, held-out PSNR and pictures. Tags
-    start with ``tag_root`` (``""`` for the final grid, ``level<i>/`` for coarse level i)."""
+    start with ``tag_root`` (``""`` for the final grid, ``level<i>/`` for coarse level i).
+
+    The held-out views are rendered at most every ``log.eval_every`` iterations and only while
+    the monitor's own wall time, this render included (predicted from the last one), stays
+    within ``log.eval_share`` of the solve's (null: no limit), so that past the first render
+    they cost at most that share. :attr:`seconds` is the wall time spent here.
+    """
 
     def __init__(self, setup: Setup, writer: RunWriter, cfg: DictConfig, total: int, device,
                  tag_root: str = ""):
@@ -430,8 +448,13 @@ class Monitor:
         self.device = device
         self.tag_root = tag_root
         self.last = 0
+        self.started = time.perf_counter()
+        self.seconds = 0.0
+        self.render_seconds = 0.0  # the last render's cost: the next one's prediction
+        self.last_pictures = 0
 
     def __call__(self, it: int, x: torch.Tensor, info: dict) -> None:
+        now = time.perf_counter()
         self.bar.update(it - self.last)
         self.last = it
         self.bar.set_postfix(objective=f"{info['objective']:.4g}", gap=f"{info.get('rel_gap', math.nan):.1e}")
@@ -439,8 +462,15 @@ class Monitor:
         values["nonzero_fraction"] = float((x > 0).any(1).float().mean())
         self.writer.scalars(it, values, prefix=f"{self.tag_root}solve")
         every = int(self.cfg.log.eval_every)
-        if every > 0 and it % every == 0:
+        share = self.cfg.log.get("eval_share", 0.1)
+        affordable = share is None or (
+            self.seconds + self.render_seconds <= float(share) * (now - self.started))
+        if every > 0 and it - self.last_pictures >= every and affordable:
+            start = time.perf_counter()
             self.pictures(it, x)
+            self.render_seconds = time.perf_counter() - start
+            self.last_pictures = it
+        self.seconds += time.perf_counter() - now
 
     def pictures(self, it: int, x: torch.Tensor) -> None:
         """Render the held-out views of the iterate x (M, C) and log them."""
@@ -500,7 +530,9 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
     if cfg.solver.name not in SOLVERS:
         raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
     ckpt = load_checkpoint(run_dir) if resume else None
+    clock = time.perf_counter()
     scene = load_scene(cfg.scene)
+    timing = {"scene": time.perf_counter() - clock}
     fine = scene_grid(cfg, scene)
     grids = level_grids(cfg.grid.get("levels"), fine)
     level_iters(cfg.grid.get("level_iters"), len(grids))  # refuse a bad budget before any solve
@@ -538,9 +570,16 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
 
     writer = RunWriter(str(run_dir))
     try:
+        clock = time.perf_counter()
         volume = coarse_levels(cfg, scene, device, volume, 0 if ckpt is None else at, solve_level)
+        if grids:
+            timing["coarse_levels"] = time.perf_counter() - clock
         setup = prepare(cfg, scene, device, fine)
+        timing.update(setup=setup.seconds, assembly=setup.assembly_seconds)
+        clock = time.perf_counter()
         cfg, selection = choose_weights(cfg, setup)
+        if selection is not None:
+            timing["selection"] = time.perf_counter() - clock
         problem, solver, l1 = make_problem(cfg, setup)
         meta = problem_meta(cfg, setup, l1, final, plan)
         here = ckpt if ckpt is not None and at == final else None
@@ -550,16 +589,23 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
             if grids:  # TensorBoard shows where the coarse levels left the fine problem
                 writer.scalars(0, {"objective": problem.objective(x0)})
         del volume
+        clock = time.perf_counter()
         result, stopped, monitor = guarded_solve(cfg, run_dir, setup, problem, solver, writer, device,
                                                  meta, x0, here, final, {"level_records": records})
+        timing.update(solve=time.perf_counter() - clock - monitor.seconds, monitoring=monitor.seconds)
         photometry, debiased = None, None
         if stopped is None:
+            clock = time.perf_counter()
             result, photometry = fit_photometry(cfg, setup, problem, solver, result)
+            if photometry is not None:
+                timing["photometry"] = time.perf_counter() - clock
             result, debiased = finish_solve(cfg, setup, result)
         if grids:
             records.append(level_record(setup, l1, result))
+        clock = time.perf_counter()
         metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped,
                                 photometry, records, {"selection": selection, "debias": debiased})
+        timing["outputs"] = time.perf_counter() - clock
     finally:
         writer.close()
     if stopped is not None:
@@ -570,7 +616,11 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
     (run_dir / CHECKPOINT_FILE).unlink(missing_ok=True)  # finished: nothing left to resume
     formats = cfg.get("export", {}).get("formats", [])
     if formats:
+        clock = time.perf_counter()
         export_run(run_dir, list(formats))
+        timing["export"] = time.perf_counter() - clock
+    metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
+    write_json_atomic(run_dir / "metrics.json", metrics)
     return metrics
 
 
@@ -616,7 +666,7 @@ def guarded_solve(cfg: DictConfig, run_dir: Path, setup: Setup, problem: Problem
     start_objective = float(problem.objective(setup.pixels.new_zeros(start_x.shape)))
     monitor = Monitor(setup, writer, cfg, int(cfg.solver.get("max_iters") or 0), device,
                       "" if final else f"level{level}/")
-    monitor.last = start
+    monitor.last = monitor.last_pictures = start
     ck = cfg.get("checkpoint") or {}
     guard = SolveGuard(solver, monitor, run_dir, int(ck.get("every", 0)),
                        float(ck.get("divergence_factor", 0.0)), start_objective, {**meta, **extra},

@@ -1,19 +1,30 @@
-"""Solver speed on the paper-scale problem against scikit-learn (and celer, if installed).
+"""Solver speed on the paper-scale problem: ours against scikit-learn, skglm and celer.
 
 The problem: the built-in synthetic flame, 8 views of 320x240, silhouette rays x visual-hull
 voxels on an N^3 grid, trilinear assembled operator A (float32 CSR), data P (N_rays, 3), and
-lambda = l1_rel * max(A^T P). Every method runs on the identical (A, P, lambda) under a time
-budget; its objective 0.5||A x - P||^2 + lambda * sum(x) is traced in float64 (the tracing time
-is not counted) and the time to a relative objective gap of 1e-4 and 1e-6 against the best
-objective any method reached is reported. Also: the machine's memory bandwidth and the time of
-one A x and one A^T y against the bound bytes(A) / bandwidth.
+lambda = l1_rel * max(A^T P); per colour column c, F_c(x) = 0.5||A x - P_c||^2 + lambda sum(x),
+x >= 0, and F = sum_c F_c.
 
-    PYTHONPATH=. python scripts/benchmark.py --grid 64 --l1-rel 1e-3 --budget 60 --dump out/
+f* comes from a float64 reference solve (FISTA, then an active-set conjugate-gradient polish
+per column) whose duality gap certifies it: f* lies in [dual bound, f_ref], and the report says
+how tight. It is cached beside the problem dump (``--dump``, default a user cache folder) under
+a hash of (A, P, lambda), so it is computed once per problem. Every method then runs on the
+identical problem; each iterate's objective is recomputed in float64 by :func:`objectives`
+(the one function, its time not counted) and the time to a relative gap (F - f_ref) / f_ref of
+1e-4 and 1e-6 is reported. Ours run on all columns at once (float32, after a warm-up solve);
+the peers (``pip install -e ".[bench]"``) run per column in float64 with their own iteration
+or tolerance budget swept (cold runs, doubling) until the gap or the time budget is reached,
+each after a JIT warm-up on a small slice. Also: the memory bandwidth, the time of one A x and
+one A^T y against bytes(A) / bandwidth, and a fused A^T (A y - b) in one sweep (numba).
+
+    PYTHONPATH=. python scripts/benchmark.py --grid 64 128 --threads 2
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import multiprocessing as mp
 import os
 import platform
 import queue as queue_module
@@ -30,14 +41,16 @@ from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.device import resolve_device
 from flamerecon.grid import VoxelGrid
 from flamerecon.hull import visual_hull
+from flamerecon.operators.sparse import CsrOperator
 from flamerecon.projector import assemble, camera_rays
 from flamerecon.scenes import load_scene
 from flamerecon.silhouettes import silhouettes
 from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
 
 TARGETS = (1e-4, 1e-6)
-DEFAULT_SOLVER = "fista"
-PEERS = ("sklearn_lasso", "sklearn_lassolars", "celer_lasso")
+OURS = ("fista", "newton_cg")
+PEERS = ("sklearn_lasso", "skglm_lasso", "celer_lasso", "sklearn_lassolars")
+CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "flamerecon" / "benchmark"
 
 
 def sync(device: torch.device) -> None:
@@ -83,12 +96,17 @@ def build_problem(n: int, device: torch.device) -> dict:
             "assembly_seconds": seconds}
 
 
-class Tracer:
-    """Records (solver seconds, float64 objective) pairs; its own time is not counted.
+def objectives(A64: torch.Tensor, P64: torch.Tensor, lam: float, x) -> np.ndarray:
+    """F_c(x) (C,) in float64 for x (M, C) or (C, M) numpy/torch: THE objective every method's
+    iterate is scored with (A64 a float64 CSR copy of A, P64 (N, C) float64)."""
+    x = torch.as_tensor(np.asarray(x) if not torch.is_tensor(x) else x).to(P64)
+    x = x.reshape(A64.shape[1], -1) if x.shape[0] == A64.shape[1] else x.T
+    r = A64 @ x - P64
+    return (0.5 * (r * r).sum(0) + lam * x.abs().sum(0)).cpu().numpy()
 
-    The objective is evaluated in float64 on the operator's device (a float64 copy of A), so
-    tracing a GPU solve costs little and a CPU peer's numpy iterate is scored the same way.
-    """
+
+class Tracer:
+    """Records (solver seconds, total float64 objective) pairs; its own time is not counted."""
 
     def __init__(self, A64: torch.Tensor, P64: torch.Tensor, lam: float) -> None:
         self.A64, self.P64, self.lam = A64, P64, lam
@@ -96,41 +114,190 @@ class Tracer:
         self.overhead = 0.0
         self.trace: list[tuple[float, float]] = []
 
-    def objective(self, x) -> float:
-        x = torch.as_tensor(x).to(self.P64).reshape(self.A64.shape[1], -1)
-        r = self.A64 @ x - self.P64
-        return float(0.5 * (r * r).sum() + self.lam * x.abs().sum())
-
     def record(self, x) -> None:
         t = time.perf_counter()
-        self.trace.append((t - self.start - self.overhead, self.objective(x)))
+        self.trace.append((t - self.start - self.overhead,
+                           float(objectives(self.A64, self.P64, self.lam, x).sum())))
         self.overhead += time.perf_counter() - t
 
 
+def problem_key(A: CsrOperator, P: torch.Tensor, lam: float) -> str:
+    """A hash of (A, P, lambda): the reference cache's key."""
+    h = hashlib.sha1()
+    for t in (A.A.crow_indices(), A.A.col_indices(), A.A.values(), P):
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    h.update(repr(float(lam)).encode())
+    return h.hexdigest()
+
+
+def polish_column(A64, b: np.ndarray, lam: float, x: np.ndarray, rounds: int = 8,
+                  cg_iters: int = 3000) -> tuple[np.ndarray, float, float]:
+    """Active-set polish of one column (Lawson-Hanson style): CG on the normal equations of the
+    support S, then S loses the voxels the solve made negative and gains those whose gradient
+    descends, until neither happens; returns (x, primal, dual lower bound).
+
+    The dual point is u = b - A_S z of the support solution z, scaled into {A^T u <= lambda}:
+    tight once S is the optimum's support.
+    """
+    A_csc = A64.tocsc()
+
+    def primal(v):
+        r = A64 @ v - b
+        return 0.5 * r @ r + lam * v.sum()
+
+    def dual(u):
+        worst = (A64.T @ u).max()
+        s = min(1.0, lam / worst) if worst > 0 else 1.0
+        return float(b @ (s * u) - 0.5 * (s * u) @ (s * u))
+
+    best_x, best_p, best_d = x, primal(x), dual(b - A64 @ x)
+    S = np.nonzero(x > 0)[0]
+    for _ in range(rounds):
+        AS = A_csc[:, S].tocsr()
+        AST = AS.T.tocsr()
+        z = x[S].copy()
+        res = AST @ b - lam - AST @ (AS @ z)
+        p, rr = res.copy(), res @ res
+        stop = (1e-10 * np.linalg.norm(AST @ b)) ** 2
+        for _ in range(cg_iters):
+            if rr <= stop:
+                break
+            q = AST @ (AS @ p)
+            alpha = rr / (p @ q)
+            z += alpha * p
+            res -= alpha * q
+            rr, rr_old = res @ res, rr
+            p = res + (rr / rr_old) * p
+        best_d = max(best_d, dual(b - AS @ z))
+        x = np.zeros_like(x)
+        x[S] = np.maximum(z, 0)
+        if primal(x) < best_p:
+            best_x, best_p = x, primal(x)
+        g = A64.T @ (A64 @ x - b) + lam
+        keep = S[z > 0]
+        enter = np.setdiff1d(np.nonzero(g < 0)[0], S)
+        if best_p - best_d <= 1e-12 * best_p or (len(keep) == len(S) and len(enter) == 0):
+            break
+        S = np.union1d(keep, enter)
+    return best_x, float(best_p), float(best_d)
+
+
+def reference(A: CsrOperator, P: torch.Tensor, lam: float, cache: Path, fista_iters: int) -> dict:
+    """The certified float64 optimum of every column, from ``cache/reference.npz`` when its
+    key matches (A, P, lambda), else solved (FISTA in float64, then :func:`polish_column`) and
+    written there. Returns x (M, C), f (C,) primal and lower (C,) dual bounds, seconds."""
+    key = problem_key(A, P, lam)
+    path = cache / "reference.npz"
+    if path.exists():
+        got = np.load(path)
+        if str(got["key"]) == key:
+            return {"x": got["x"], "f": got["f"], "lower": got["lower"],
+                    "seconds": float(got["seconds"]), "cached": True}
+    start = time.perf_counter()
+    A64op = CsrOperator(A.A.cpu().double(), A.AT.cpu().double())
+    P64 = P.cpu().double()
+    solver = make_solver("fista", tol=1e-12, max_iters=fista_iters, check_every=100)
+    x = solver.solve(Problem(A64op, P64, lam)).x.numpy()
+    A64 = A.to_scipy().astype(np.float64)
+    f, lower = np.zeros(x.shape[1]), np.zeros(x.shape[1])
+    for c in range(x.shape[1]):
+        x[:, c], f[c], lower[c] = polish_column(A64, P64[:, c].numpy(), lam, x[:, c].copy())
+    seconds = time.perf_counter() - start
+    cache.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=cache, suffix=".tmp", delete=False) as fh:
+        np.savez(fh, key=key, x=x, f=f, lower=lower, seconds=seconds)
+    os.replace(fh.name, path)
+    return {"x": x, "f": f, "lower": lower, "seconds": seconds, "cached": False}
+
+
 def run_ours(name: str, problem: Problem, tracer: Tracer, budget: float) -> dict:
-    solver = make_solver(name, tol=1e-12, max_iters=10**7, check_every=10, max_seconds=budget)
+    """One of our solvers on all columns at once, traced every 10 iterations, after a short
+    warm-up solve (first-call costs excluded, as for the peers' JIT)."""
+    make_solver(name, tol=0.0, max_iters=3, check_every=1).solve(problem)
+    solver = make_solver(name, tol=1e-12, max_iters=10**7, max_seconds=budget,
+                         check_every=10 if name == "fista" else 1)
     tracer.start = time.perf_counter()
     result = solver.solve(problem, callback=lambda it, x, info: tracer.record(x))
     return {"iterations": result.iterations, "x": result.x.cpu().numpy()}
 
 
-def run_chunked(estimator_cls, A_csc, P64: np.ndarray, lam: float, tracer: Tracer,
-                budget: float) -> dict:
-    """A coordinate-descent peer (scikit-learn or celer ``Lasso``) with warm-started fits of
-    growing epoch counts, traced after each fit (the peers have no iteration callback)."""
-    model = estimator_cls(alpha=lam / A_csc.shape[0], positive=True, fit_intercept=False,
-                          warm_start=True, tol=1e-14, max_iter=5)
-    epochs, chunk = 0, 5
-    tracer.start = time.perf_counter()
-    while tracer.trace == [] or tracer.trace[-1][0] < budget:
-        model.set_params(max_iter=chunk)
+def peer_fit(label: str, level: float, alpha: float):
+    """A fitted-per-column peer estimator at one budget level: scikit-learn's epochs (tol 0),
+    skglm's and celer's tolerance (their working-set solvers stop on it)."""
+    common = {"alpha": alpha, "positive": True, "fit_intercept": False}
+    if label == "sklearn_lasso":
+        from sklearn.linear_model import Lasso
+
+        return Lasso(**common, tol=0.0, max_iter=int(level))
+    if label == "skglm_lasso":
+        from skglm import Lasso
+
+        return Lasso(**common, tol=level, max_iter=1000, max_epochs=100_000)
+    from celer import Lasso
+
+    return Lasso(**common, tol=level, max_iter=1000, max_epochs=100_000)
+
+
+def peer_levels(label: str):
+    """The swept budget: epochs doubling from 10, or tolerances / 10 from 1e-3."""
+    if label == "sklearn_lasso":
+        return [10 * 2**k for k in range(20)]
+    return [10.0 ** -k for k in range(3, 15)]
+
+
+def _peer_child(label, level, A_csc, P64, alpha, out) -> None:
+    coefs, seconds = [], 0.0
+    for c in range(P64.shape[1]):
+        model = peer_fit(label, level, alpha)
+        start = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model.fit(A_csc, P64)
-        epochs += chunk
-        tracer.record(np.asarray(model.coef_).T)
-        chunk = int(np.ceil(chunk * 1.5))
-    return {"iterations": epochs, "x": np.asarray(model.coef_).T}
+            model.fit(A_csc, P64[:, c])
+        seconds += time.perf_counter() - start
+        coefs.append(np.asarray(model.coef_, dtype=np.float64).ravel())
+    out.put({"seconds": seconds, "x": np.stack(coefs, 1)})
+
+
+def peer_installed(label: str) -> str | None:
+    """None if the peer's package imports, else why it is skipped."""
+    module = {"sklearn_lasso": "sklearn", "skglm_lasso": "skglm", "celer_lasso": "celer",
+              "sklearn_lassolars": "sklearn"}[label]
+    try:
+        __import__(module)
+    except ImportError:
+        return f"{module} not installed (pip install -e \".[bench]\")"
+    return None
+
+
+def sweep_peer(label: str, A_csc, P64: np.ndarray, lam: float, f_ref: float, A64_t, P64_t,
+               budget: float) -> dict:
+    """Cold fits of every column at growing budgets (each in a forked child, abandoned past
+    ``budget`` s) until the 1e-6 gap or the time budget; trace of (seconds, objective)."""
+    alpha = lam / A_csc.shape[0]  # the peers minimise (1/2N)||Aw - p||^2 + alpha ||w||_1
+    _peer_child(label, peer_levels(label)[0], A_csc[:200].tocsc()[:, :300], P64[:200], alpha,
+                queue_module.Queue())  # JIT warm-up (skglm's numba) before any timing
+    ctx = mp.get_context("fork")
+    trace, levels = [], []
+    for level in peer_levels(label):
+        out = ctx.Queue()
+        child = ctx.Process(target=_peer_child, args=(label, level, A_csc, P64, alpha, out),
+                            daemon=True)
+        child.start()
+        try:
+            got = out.get(timeout=2 * budget)
+        except queue_module.Empty:
+            got = None
+        finally:
+            child.terminate()
+            child.join()
+        if got is None:
+            break
+        f = float(objectives(A64_t, P64_t, lam, got["x"]).sum())
+        trace.append((got["seconds"], f))
+        levels.append(level)
+        if (f - f_ref) / f_ref <= TARGETS[-1] or got["seconds"] > budget:
+            break
+    return {"trace": trace, "levels": levels}
 
 
 def lars_fits(N: int, M: int) -> tuple[bool, str]:
@@ -159,8 +326,6 @@ def _lassolars_child(A64, P64: np.ndarray, lam: float, queue) -> None:
 def run_lassolars(A64, P64: np.ndarray, lam: float, budget: float) -> dict | None:
     """LassoLars (dense X) in a forked process, abandoned past ``budget`` seconds (it has no
     iteration callback or time limit of its own); None if it did not finish."""
-    import multiprocessing as mp
-
     ctx = mp.get_context("fork")
     queue = ctx.Queue()
     child = ctx.Process(target=_lassolars_child, args=(A64, P64, lam, queue), daemon=True)
@@ -175,11 +340,42 @@ def run_lassolars(A64, P64: np.ndarray, lam: float, budget: float) -> dict | Non
         child.join()
 
 
-def seconds_to(trace: list[tuple[float, float]], best: float, target: float) -> float | None:
-    for seconds, f in trace:
-        if (f - best) / abs(best) <= target:
-            return seconds
-    return None
+def fused_seconds(A: CsrOperator, y: torch.Tensor, b: torch.Tensor) -> tuple[float, float] | None:
+    """Median seconds of A^T (A y - b) as one sweep over the rows of A (numba: each row's
+    residual, then its scatter into a per-thread copy of the result, summed), and its largest
+    difference from the two-product result relative to that result's largest entry; None
+    without numba."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(parallel=True, cache=False)
+    def kernel(crow, col, val, y, b, parts):
+        n, threads, C = crow.shape[0] - 1, parts.shape[0], y.shape[1]
+        chunk = (n + threads - 1) // threads
+        for t in numba.prange(threads):
+            out = parts[t]
+            out[:] = 0
+            r = np.empty(C, dtype=y.dtype)
+            for i in range(t * chunk, min(n, (t + 1) * chunk)):
+                for c in range(C):
+                    r[c] = -b[i, c]
+                for k in range(crow[i], crow[i + 1]):
+                    for c in range(C):
+                        r[c] += val[k] * y[col[k], c]
+                for k in range(crow[i], crow[i + 1]):
+                    for c in range(C):
+                        out[col[k], c] += val[k] * r[c]
+        return parts.sum(0)
+
+    crow, col = A.A.crow_indices().numpy(), A.A.col_indices().numpy()
+    val, yn, bn = A.A.values().numpy(), y.numpy(), b.numpy()
+    parts = np.empty((numba.get_num_threads(), A.shape[1], y.shape[1]), dtype=yn.dtype)
+    seconds = timed(lambda: kernel(crow, col, val, yn, bn, parts), torch.device("cpu"))
+    want = A.adjoint(A.forward(y) - b).numpy()
+    err = float(np.abs(kernel(crow, col, val, yn, bn, parts) - want).max() / np.abs(want).max())
+    return seconds, err
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -201,6 +397,12 @@ def dump(folder: Path, A, P: np.ndarray, lam: float, x: np.ndarray) -> None:
         os.replace(f.name, folder / name)
 
 
+def seconds_to(trace: list[tuple[float, float]], f_ref: float, target: float) -> float | None:
+    """The least time in ``trace`` at which (F - f_ref) / f_ref <= target, or None."""
+    hits = [seconds for seconds, f in trace if (f - f_ref) / f_ref <= target]
+    return min(hits) if hits else None
+
+
 def benchmark_grid(n: int, args, device: torch.device) -> dict:
     t0 = time.perf_counter()
     built = build_problem(n, device)
@@ -208,17 +410,34 @@ def benchmark_grid(n: int, args, device: torch.device) -> dict:
     N, M = A.shape
     lam = args.l1_rel * lambda_max(A, P)
     print(f"grid {n}^3: {N} rays x {M} hull voxels, nnz {A.nnz}, {A.nbytes() / 1e6:.0f} MB per "
-          f"copy, assembled in {built['assembly_seconds']:.1f} s (setup {time.perf_counter() - t0:.0f} s)")
+          f"copy, assembled in {built['assembly_seconds']:.1f} s (setup {time.perf_counter() - t0:.0f} s)"
+          f"; load average {os.getloadavg()[0]:.2f}", flush=True)
 
     bw = memory_bandwidth(device)
     x1 = torch.rand(M, P.shape[1], device=device)
     y1 = torch.rand(N, P.shape[1], device=device)
     t_ax, t_aty = timed(lambda: A.forward(x1), device), timed(lambda: A.adjoint(y1), device)
+    t_pair = timed(lambda: A.adjoint(A.forward(x1) - P), device)
     bound = A.nbytes() / bw
+    fused = fused_seconds(A, x1, P) if device.type == "cpu" else None
     print(f"bandwidth {bw / 1e9:.1f} GB/s; A x {t_ax * 1e3:.1f} ms, A^T y {t_aty * 1e3:.1f} ms, "
-          f"bound {bound * 1e3:.1f} ms each; pair at {(t_ax + t_aty) / (2 * bound):.1f}x the bound")
+          f"bound {bound * 1e3:.1f} ms each; pair at {(t_ax + t_aty) / (2 * bound):.1f}x the bound; "
+          f"A^T(A y - b) {t_pair * 1e3:.1f} ms as two products"
+          + ("" if fused is None else f", {fused[0] * 1e3:.1f} ms fused (numba, one sweep, "
+             f"{fused[0] / bound:.1f}x one read of A; max rel. difference {fused[1]:.1e})"),
+          flush=True)
 
-    A64_device, P64_device = A.A.to(torch.float64), P.double()  # the tracers' objective
+    folder = Path(args.dump) / f"grid{n}"
+    ref = reference(A, P, lam, folder, args.reference_iters)
+    f_ref, lower = float(ref["f"].sum()), float(ref["lower"].sum())
+    certified = (f_ref - lower) / f_ref
+    print(f"reference f* = {f_ref:.10g} (float64, {'cached' if ref['cached'] else 'solved'} in "
+          f"{ref['seconds']:.0f} s), certified by its duality gap to {certified:.1e} relative",
+          flush=True)
+    if not (folder / "A.npz").exists():
+        dump(folder, A.to_scipy(), P.cpu().numpy(), lam, ref["x"])
+
+    A64_device, P64_device = A.A.to(torch.float64), P.double()  # for objectives()
     problem = Problem(A, P, lam, grid_shape=built["grid"].shape, voxel_index=built["voxel_index"])
     runs: dict[str, dict] = {}
     traces: dict[str, list] = {}
@@ -226,76 +445,79 @@ def benchmark_grid(n: int, args, device: torch.device) -> dict:
         tracer = Tracer(A64_device, P64_device, lam)
         runs[name] = run_ours(name, problem, tracer, args.budget)
         traces[name] = tracer.trace
-        print(f"  {name}: {runs[name]['iterations']} iterations, {tracer.trace[-1][0]:.1f} s")
-    peers = {"sklearn_lasso": "sklearn.linear_model"} if "sklearn_lasso" in args.peers else {}
-    if "celer_lasso" in args.peers:
-        try:
-            import celer  # noqa: F401
-
-            peers["celer_lasso"] = "celer"
-        except ImportError:
-            print("  celer: not installed, skipped")
-    if peers or "sklearn_lassolars" in args.peers:  # the peers' input (CPU, float64)
-        A64, P64 = A.to_scipy().astype(np.float64), P.cpu().double().numpy()
-    if peers:
-        A_csc = A64.tocsc()
-    for label, module in peers.items():
-        estimator = __import__(module, fromlist=["Lasso"]).Lasso
-        tracer = Tracer(A64_device, P64_device, lam)
-        runs[label] = run_chunked(estimator, A_csc, P64, lam, tracer, args.budget)
-        traces[label] = tracer.trace
-        print(f"  {label}: {runs[label]['iterations']} epochs, {tracer.trace[-1][0]:.1f} s")
+        print(f"  {name}: {runs[name]['iterations']} iterations, {tracer.trace[-1][0]:.1f} s, "
+              f"rel. gap {(tracer.trace[-1][1] - f_ref) / f_ref:.1e}", flush=True)
     skipped = {}
-    if "sklearn_lassolars" in args.peers:
-        fits, why = lars_fits(N, M)
-        if not fits:
-            skipped["sklearn_lassolars"] = why
-        else:
-            tracer = Tracer(A64_device, P64_device, lam)
-            got = run_lassolars(A64, P64, lam, args.budget)
+    coordinate = [p for p in args.peers if p != "sklearn_lassolars"]
+    A64 = P64 = A_csc = None
+    for label in args.peers:
+        why = peer_installed(label)
+        if why is not None:
+            skipped[label] = why
+            print(f"  {label}: skipped ({why})")
+            continue
+        if A64 is None:  # the peers' input (CPU, float64), built only when a peer runs
+            A64, P64 = A.to_scipy().astype(np.float64), P.cpu().double().numpy()
+            A_csc = A64.tocsc() if coordinate else None
+        if label == "sklearn_lassolars":
+            fits, why = lars_fits(N, M)
+            got = run_lassolars(A64, P64, lam, args.budget) if fits else None
             if got is None:
-                skipped["sklearn_lassolars"] = f"did not finish within the {args.budget:g} s budget"
-            else:
-                tracer.trace = [(got["seconds"], tracer.objective(got["x"]))]
-                runs["sklearn_lassolars"], traces["sklearn_lassolars"] = got, tracer.trace
-    for label, reason in skipped.items():
-        print(f"  {label}: skipped ({reason})")
+                skipped[label] = why or f"did not finish within the {args.budget:g} s budget"
+                print(f"  {label}: skipped ({skipped[label]})")
+                continue
+            traces[label] = [(got["seconds"],
+                              float(objectives(A64_device, P64_device, lam, got["x"]).sum()))]
+            runs[label] = {"iterations": got["iterations"], "levels": []}
+        else:
+            got = sweep_peer(label, A_csc, P64, lam, f_ref, A64_device, P64_device, args.budget)
+            traces[label] = got["trace"]
+            runs[label] = {"iterations": len(got["levels"]), "levels": got["levels"]}
+            if not got["trace"]:
+                skipped[label] = f"its first level did not finish within {2 * args.budget:g} s"
+                del traces[label]
+                continue
+        print(f"  {label}: levels {runs[label]['levels']}, last {traces[label][-1][0]:.1f} s, "
+              f"rel. gap {(traces[label][-1][1] - f_ref) / f_ref:.1e}", flush=True)
 
-    best = min(f for trace in traces.values() for _, f in trace)
     methods = {}
     for name, trace in traces.items():
         methods[name] = {
-            **{f"seconds_to_{t:.0e}".replace("e-0", "e-"): seconds_to(trace, best, t)
+            **{f"seconds_to_{t:.0e}".replace("e-0", "e-"): seconds_to(trace, f_ref, t)
                for t in TARGETS},
             "iterations": runs[name]["iterations"],
+            "levels": runs[name].get("levels"),
             "objective": trace[-1][1],
+            "best_rel_gap": min((f - f_ref) / f_ref for _, f in trace),
             "seconds": trace[-1][0],
             "trace": [[round(s, 4), f] for s, f in trace],
         }
-    report = {
+    return {
         "grid": [n, n, n], "rays": N, "voxels": M, "nnz": A.nnz, "l1_rel": args.l1_rel,
-        "lambda": lam, "best_objective": best, "budget_seconds": args.budget,
-        "assembly_seconds": built["assembly_seconds"],
-        "bandwidth_GBps": bw / 1e9, "seconds_Ax": t_ax, "seconds_ATy": t_aty,
+        "lambda": lam, "reference_objective": f_ref, "reference_lower_bound": lower,
+        "reference_certified_rel_gap": certified, "reference_seconds": ref["seconds"],
+        "budget_seconds": args.budget, "assembly_seconds": built["assembly_seconds"],
+        "load_average": os.getloadavg(), "bandwidth_GBps": bw / 1e9, "seconds_Ax": t_ax,
+        "seconds_ATy": t_aty, "seconds_normal_pair": t_pair,
+        "seconds_normal_fused": None if fused is None else fused[0],
         "seconds_bound_each": bound, "methods": methods, "skipped": skipped,
     }
-    if args.dump is not None:
-        folder = Path(args.dump) if len(args.grid) == 1 else Path(args.dump) / f"grid{n}"
-        dump(folder, A.to_scipy(), P.cpu().numpy(), lam,
-             runs[DEFAULT_SOLVER]["x"] if DEFAULT_SOLVER in runs else np.zeros((M, P.shape[1])))
-    return report
 
 
 def print_table(report: dict) -> None:
     def fmt(v):
         return "  > budget" if v is None else f"{v:10.2f}"
 
-    print(f"\n{report['grid'][0]}^3, lambda = {report['l1_rel']:g} max(A^T P), "
-          f"best objective {report['best_objective']:.8g}")
-    print(f"{'method':<20}{'s to 1e-4':>10}{'s to 1e-6':>10}{'iters':>8}{'objective':>16}")
+    print(f"\n{report['grid'][0]}^3, lambda = {report['l1_rel']:g} max(A^T P), f* = "
+          f"{report['reference_objective']:.10g} (certified to "
+          f"{report['reference_certified_rel_gap']:.1e}), load average "
+          f"{report['load_average'][0]:.2f}")
+    print(f"{'method':<20}{'s to 1e-4':>10}{'s to 1e-6':>10}{'best gap':>10}{'iters':>8}")
     for name, m in report["methods"].items():
         print(f"{name:<20}{fmt(m['seconds_to_1e-4'])}{fmt(m['seconds_to_1e-6'])}"
-              f"{m['iterations']:>8}{m['objective']:>16.8g}")
+              f"{m['best_rel_gap']:>10.1e}{m['iterations']:>8}")
+    for name, why in report["skipped"].items():
+        print(f"{name:<20}skipped: {why}")
 
 
 def check_args(args) -> None:
@@ -321,13 +543,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--grid", type=int, nargs="+", default=[64], help="grid sizes N (N^3)")
     parser.add_argument("--l1-rel", type=float, default=1e-3, help="lambda / max(A^T P)")
     parser.add_argument("--budget", type=float, default=60.0, help="seconds per method")
-    parser.add_argument("--solvers", nargs="+", default=["fista"], help="ours, e.g. fista lbfgsb")
+    parser.add_argument("--solvers", nargs="*", default=list(OURS), help="ours, e.g. fista lbfgsb")
     parser.add_argument("--peers", nargs="*", default=list(PEERS), choices=PEERS,
                         help="peers to time (default: all; installed ones run)")
+    parser.add_argument("--reference-iters", type=int, default=4000,
+                        help="float64 FISTA iterations before the reference's polish")
     parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--out", default="benchmark.json")
-    parser.add_argument("--dump", default=None, help="folder for A.npz, problem.npz, benchmark.json")
+    parser.add_argument("--dump", default=str(CACHE),
+                        help="folder for grid<N>/ A.npz, problem.npz, reference.npz (the cache)")
     args = parser.parse_args(argv)
     return run_script(lambda: run(args), args.debug)
 
@@ -335,6 +560,7 @@ def main(argv: list[str] | None = None) -> int:
 def run(args) -> None:
     check_args(args)
     device = resolve_device(args.device, "--device")
+    args.device = device.type
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     machine = {"platform": platform.platform(), "processor": platform.processor(),
@@ -349,8 +575,6 @@ def run(args) -> None:
         print_table(reports[-1])
     out = {"machine": machine, "results": reports}
     write_json(Path(args.out), out)
-    if args.dump is not None:
-        write_json(Path(args.dump) / "benchmark.json", out)
     print(f"\nwrote {args.out}")
 
 

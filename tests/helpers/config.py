@@ -12,7 +12,8 @@ from .paths import REPO, repo_env
 #: the real config shrunk to seconds: 5 cameras at 48x36, a 32-cell phantom, a 16-cell grid.
 TINY = [
     "scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",
-    "grid.resolution=16", "solver.max_iters=30", "log.eval_every=10", "device=cpu",
+    "grid.resolution=16", "solver.max_iters=30", "log.eval_every=10", "log.eval_share=null",
+    "device=cpu",
 ]
 #: a shorter solve without held-out pictures, for runs that only have to get somewhere.
 FAST = ["solver.max_iters=10", "log.eval_every=0"]

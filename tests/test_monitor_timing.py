@@ -1,0 +1,67 @@
+"""The monitor's held-out renders stay within their share of the solve (on a fake clock), and a
+run reports where its time went (metrics.json ``timing``, the summary's time split)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from omegaconf import OmegaConf
+
+from flamerecon import pipeline
+from tests.helpers import tiny_cfg
+
+
+class Clock:
+    """A fake ``time.perf_counter``: advances only when told."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Writer:
+    def scalars(self, step, values, prefix="solve") -> None:
+        pass
+
+
+@pytest.mark.parametrize("share", [0.1, None])
+def test_monitor_renders_within_its_share_of_the_solve(monkeypatch, share):
+    clock = Clock()
+    monkeypatch.setattr(pipeline.time, "perf_counter", clock)
+    renders = []
+
+    def pictures(self, it, x):  # a render costs 1 s, ten solver iterations
+        renders.append(it)
+        clock.t += 1.0
+
+    monkeypatch.setattr(pipeline.Monitor, "pictures", pictures)
+    cfg = OmegaConf.create({"log": {"eval_every": 1, "eval_share": share}})
+    monitor = pipeline.Monitor(None, Writer(), cfg, 0, "cpu")
+    x = pipeline.torch.zeros(4, 3)
+    start = clock.t
+    for it in range(1, 1001):
+        clock.t += 0.1  # one solver iteration
+        monitor(it, x, {"objective": 1.0})
+    monitor.close()
+    elapsed = clock.t - start
+    if share is None:
+        assert len(renders) == 1000  # every log.eval_every iterations, as before
+    else:
+        assert 5 <= len(renders) <= 15 and renders[0] == 1
+        assert monitor.seconds <= share * elapsed + 1e-9
+        assert monitor.seconds == pytest.approx(len(renders) * 1.0)
+
+
+def test_a_run_reports_its_time_split(tmp_path):
+    metrics = pipeline.reconstruct(tiny_cfg("log.eval_every=5"), tmp_path)
+    timing = metrics["timing"]
+    assert {"scene", "setup", "assembly", "solve", "monitoring", "outputs", "total"} <= set(timing)
+    assert all(v >= 0 for v in timing.values())
+    assert timing["assembly"] <= timing["setup"]
+    assert timing["total"] == pytest.approx(sum(v for k, v in timing.items()
+                                                if k not in ("assembly", "total")))
+    assert json.loads((tmp_path / "metrics.json").read_text())["timing"] == timing
+    assert "time split [s]" in pipeline.summary_table(metrics)
