@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from .atomic import write_json_atomic
 from .evaluation import render_scene_views, score_views, silhouette_union, write_renders
 from .pipeline import (
+    calibrated_scene,
     prepare,
     resolve_device,
     solve,
@@ -52,8 +53,9 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     for name in views:
         split = cfg.copy()
         split.holdout = [name, *[e for e in exclude if e != name]]
-        setup = prepare(split, scene, device)
-        x0 = warm_start(split, scene, device, setup)  # init= and/or grid.levels
+        fold, _ = calibrated_scene(split, scene, device)  # calibration.refine: this fold's cameras
+        setup = prepare(split, fold, device)
+        x0 = warm_start(split, fold, device, setup)  # init= and/or grid.levels
         result, l1, _ = solve(split, setup, x0)
         v = scene.views.index(name)
         image = render_scene_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)
