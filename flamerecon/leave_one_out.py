@@ -19,7 +19,7 @@ from .atomic import write_json_atomic
 from .device import resolve_device
 from .evaluation import render_scene_views, score_views, silhouette_union, write_renders
 from .options_check import check_options
-from .pipeline import prepare, solve, warm_start
+from .pipeline import calibrated_scene, prepare, solve, warm_start
 from .scenes import Scene, SceneError, load_scene
 
 #: the per-view numbers averaged into the table's last row.
@@ -50,8 +50,9 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     for name in views:
         split = cfg.copy()
         split.holdout = [name, *[e for e in exclude if e != name]]
-        setup = prepare(split, scene, device)
-        x0 = warm_start(split, scene, device, setup)  # init= and/or grid.levels
+        fold, _ = calibrated_scene(split, scene, device)  # calibration.refine: this fold's cameras
+        setup = prepare(split, fold, device)
+        x0 = warm_start(split, fold, device, setup)  # init= and/or grid.levels
         result, l1, _ = solve(split, setup, x0)
         v = scene.views.index(name)
         image = render_scene_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)

@@ -8,7 +8,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from .atomic import write_json_atomic
-from .cameras import K_of, camera_subset, cameras_to
+from .cameras import K_of, camera_subset, cameras_to, make_cameras
 from .checkpoint import CHECKPOINT_FILE, load_checkpoint
 from .checks import (
     check_density_fits,
@@ -42,6 +42,7 @@ from .metrics import resample_to
 from .options_check import check_options
 from .photometry import fit_gain_offset_rows, normalize_gains
 from .projector import camera_rays, make_operator
+from .refine_cameras import RefineOptions, correction_report, refine, with_cameras
 from .run_lock import run_lock
 from .scenes import Scene, load_scene
 from .silhouettes import silhouettes
@@ -352,14 +353,67 @@ def warm_start(cfg: DictConfig, scene: Scene, device: torch.device, setup: Setup
     return None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
 
 
+def refine_options(cfg: DictConfig) -> RefineOptions:
+    """The ``calibration:`` node as :class:`~flamerecon.refine_cameras.RefineOptions`."""
+    node = OmegaConf.to_container(cfg.get("calibration") or {}, resolve=True)
+    try:
+        return RefineOptions(**node)
+    except TypeError as err:
+        raise ConfigError(f"calibration: {err}; valid keys are {list(RefineOptions.__dataclass_fields__)}") from err
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
+
+
+def calibrated_scene(cfg: DictConfig, scene: Scene, device: torch.device) -> tuple[Scene, dict | None]:
+    """With ``calibration.refine`` other than ``none``: ``scene`` with its training cameras
+    refined through the renderer (:func:`~flamerecon.refine_cameras.refine`, each density
+    solve as :func:`prepare` and :func:`solve` do it, on the final grid), its held-out cameras
+    unchanged, and the record for metrics.json's ``calibration`` (corrections per camera, the
+    scores of the density solved before refinement). ``(scene, None)`` when off."""
+    options = refine_options(cfg)
+    if options.refine == "none":
+        return scene, None
+    started = time.perf_counter()
+    train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
+    grid = scene_grid(cfg, scene)
+    images = scene.images.to(device)
+    masks = scene.masks.to(device) if scene.masks is not None else silhouettes(images, **cfg.silhouette)
+    step = float(cfg.projector.step)
+
+    def solve_density(views: list[int], cameras) -> torch.Tensor:
+        fold = cfg.copy()
+        fold.holdout = [name for i, name in enumerate(scene.views) if i not in views]
+        setup = prepare(fold, replace(scene, cameras=with_cameras(scene.cameras, views, cameras)), device, grid)
+        result, _, _ = solve(fold, setup)
+        return setup.volume(result.x)
+
+    found = refine(cameras_to(scene.cameras, device), train, images, masks, grid, solve_density, options, step)
+    refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
+                      meta={**scene.meta, "calibrated_cameras": scene.cameras})
+    silhouette = OmegaConf.to_container(cfg.silhouette, resolve=True)
+    before, _ = score(scene, found.initial_volume, grid, train, holdout, step, silhouette)
+    report = correction_report(camera_subset(scene.cameras, train), camera_subset(refined.cameras, train),
+                               grid, found.corrections.cpu())
+    record = {
+        "refine": options.refine, "rounds": found.history, "seconds": time.perf_counter() - started,
+        "train_psnr_before": mean_of(before["train"], "psnr"),
+        "heldout_psnr_before": mean_of(before["heldout"], "psnr"),
+        "cameras": {scene.views[v]: r for v, r in zip(train, report)},
+    }
+    return refined, record
+
+
 def cameras_record(scene: Scene, train: list[int],
                    photometry: dict[str, tuple[float, float]] | None = None) -> list[dict]:
     """cameras.json content: every camera with K, world_to_camera, size, its role, and its
-    ``gain`` and ``offset`` (image = gain * integral + offset; 1 and 0 unless fitted)."""
+    ``gain`` and ``offset`` (image = gain * integral + offset; 1 and 0 unless fitted); after
+    calibration refinement K and world_to_camera are the refined ones and ``K_calibrated``,
+    ``world_to_camera_calibrated`` the scene's own."""
     K = K_of(scene.cameras).cpu()
     E = scene.cameras.extrinsics.cpu()
     photometry = photometry or {}
-    return [
+    original = scene.meta.get("calibrated_cameras")
+    records = [
         {
             "name": name,
             "K": K[i].tolist(),
@@ -372,6 +426,11 @@ def cameras_record(scene: Scene, train: list[int],
         }
         for i, name in enumerate(scene.views)
     ]
+    if original is not None:
+        for i, record in enumerate(records):
+            record["K_calibrated"] = K_of(original)[i].cpu().tolist()
+            record["world_to_camera_calibrated"] = original.extrinsics[i].cpu().tolist()
+    return records
 
 
 def mean_of(per_view: dict[str, dict[str, float]], key: str) -> float:
@@ -403,6 +462,16 @@ def summary_table(metrics: dict) -> str:
             (f"  native {W}x{H} SSIM", f"{mean_of(metrics['heldout'], 'ssim_native'):.4f}"),
         ]
     rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"))
+    c = metrics.get("calibration")
+    if c:
+        rows.append((f"calibration ({c['refine']})", (
+            f"training {c['train_psnr_before']:.2f} -> {c['train_psnr_after']:.2f} dB, "
+            f"held-out before refinement {c['heldout_psnr_before']:.2f} dB")))
+        rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "
+                                f"focal x{r['focal_scale']:.4f}, principal point "
+                                f"({r['principal_point_px'][0]:+.2f}, {r['principal_point_px'][1]:+.2f}) px, "
+                                f"box moves {r['box_px']:.2f} px"))
+                 for name, r in c["cameras"].items()]
     if "volume" in metrics:
         rows.append(("volume rel. L2 / IoU", f"{metrics['volume']['rel_l2']:.4f} / {metrics['volume']['iou']:.4f}"))
     rows += [
@@ -531,7 +600,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
         raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
     ckpt = load_checkpoint(run_dir) if resume else None
     clock = time.perf_counter()
-    scene = load_scene(cfg.scene)
+    scene, calibration = calibrated_scene(cfg, load_scene(cfg.scene), device)
     timing = {"scene": time.perf_counter() - clock}
     fine = scene_grid(cfg, scene)
     grids = level_grids(cfg.grid.get("levels"), fine)
@@ -604,7 +673,8 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
             records.append(level_record(setup, l1, result))
         clock = time.perf_counter()
         metrics = write_outputs(cfg, run_dir, scene, setup, writer, monitor, result, l1, stopped,
-                                photometry, records, {"selection": selection, "debias": debiased})
+                                photometry, records,
+                                {"selection": selection, "debias": debiased}, calibration)
         timing["outputs"] = time.perf_counter() - clock
     finally:
         writer.close()
@@ -718,10 +788,11 @@ def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.
 def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, writer: RunWriter,
                   monitor: Monitor, result: SolveResult, l1: float, stopped: StopSolve | None,
                   photometry: Photometry | None = None, levels: list[dict] | None = None,
-                  steps: dict | None = None) -> dict:
+                  steps: dict | None = None, calibration: dict | None = None) -> dict:
     """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries;
     ``levels``: one :func:`level_record` per grid, coarsest first (only with ``grid.levels``);
-    ``steps``: the records of the weight selection and the debiasing (None where off)."""
+    ``steps``: the records of the weight selection and the debiasing (None where off);
+    ``calibration``: the record of :func:`calibrated_scene` (with calibration refinement)."""
     volume = setup.volume(result.x)
     solver_info = {
         "name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
@@ -747,7 +818,12 @@ def write_outputs(cfg: DictConfig, run_dir: Path, scene: Scene, setup: Setup, wr
     )
     write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train, per_view)})
     metrics, held_imgs = finish(cfg, run_dir, scene, volume, setup.grid, setup.train, setup.holdout,
-                                setup.step, solver_info, per_view)
+                                setup.step, solver_info, per_view, calibration=calibration)
+    for name, values in (calibration or {}).get("cameras", {}).items():
+        writer.scalars(0, {k: v for k, v in values.items() if k != "principal_point_px"}, f"calibration/{name}")
+    if calibration:
+        writer.scalars(0, {k: metrics["calibration"][k] for k in ("train_psnr_before", "train_psnr_after")},
+                       "calibration")
     monitor.log_pictures(result.iterations, volume, held_imgs)  # the final renders, not again
     writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
                                                   setup.grid.bbox_max), 0, "HWC")
@@ -777,10 +853,11 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
 def finish(cfg: DictConfig, run_dir: Path, scene: Scene, volume: torch.Tensor, grid: VoxelGrid,
            train: list[int], holdout: list[int], step: float, solver_info: dict,
            photometry: dict[str, tuple[float, float]] | None = None,
-           native: bool = False) -> tuple[dict, torch.Tensor]:
+           native: bool = False, calibration: dict | None = None) -> tuple[dict, torch.Tensor]:
     """Score, write renders/ and metrics.json; returns the metrics and the held-out renders
     (V, C, H, W). With ``native`` the held-out views are also scored at the capture's native
-    resolution (when the run works below it)."""
+    resolution (when the run works below it). ``calibration`` (see :func:`calibrated_scene`)
+    goes to metrics.json with ``train_psnr_after``, this density's training PSNR."""
     silhouette = OmegaConf.to_container(cfg.silhouette, resolve=True)
     metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
     H, W = scene.image_size
@@ -793,6 +870,8 @@ def finish(cfg: DictConfig, run_dir: Path, scene: Scene, volume: torch.Tensor, g
                 metrics["heldout"][name].update(values)
             metrics["resolution"]["native"] = list(size)
     metrics["solver"] = solver_info
+    if calibration:
+        metrics["calibration"] = {**calibration, "train_psnr_after": mean_of(metrics["train"], "psnr")}
     write_renders(run_dir, held_imgs, scene, holdout)
     write_json_atomic(run_dir / "metrics.json", metrics)
     return metrics, held_imgs
@@ -815,6 +894,26 @@ def read_photometry(run_dir: Path) -> dict[str, tuple[float, float]] | None:
     return {c["name"]: (float(c.get("gain", 1.0)), float(c.get("offset", 0.0))) for c in cams}
 
 
+def recorded_calibration(run_dir: Path, scene: Scene) -> tuple[Scene, dict | None]:
+    """``scene`` with the refined cameras of a run that refined its calibration (cameras.json's
+    K and world_to_camera where it also holds ``K_calibrated``), and metrics.json's
+    ``calibration`` record; ``(scene, None)`` for a run without refinement."""
+    path = run_dir / "cameras.json"
+    cams = json.loads(path.read_text()).get("cameras", []) if path.is_file() else []
+    if not cams or "K_calibrated" not in cams[0]:
+        return scene, None
+    by_name = {c["name"]: c for c in cams}
+    missing = [v for v in scene.views if v not in by_name]
+    if missing:
+        raise RunFolderError(f"{path}: no camera named {missing}; the scene has {scene.views}")
+    K = torch.tensor([by_name[v]["K"] for v in scene.views])
+    E = torch.tensor([by_name[v]["world_to_camera"] for v in scene.views])
+    cameras = make_cameras(K, E, scene.cameras.height, scene.cameras.width)
+    old = run_dir / "metrics.json"
+    record = json.loads(old.read_text()).get("calibration") if old.is_file() else None
+    return replace(scene, cameras=cameras, meta={**scene.meta, "calibrated_cameras": scene.cameras}), record
+
+
 def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> dict:
     """Re-render the views of a finished run from its saved ``density.npz`` and config,
     write ``metrics.json`` and ``renders/``; returns the metrics. With ``native`` the held-out
@@ -822,7 +921,7 @@ def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> 
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
     saved = load_density(run_dir / "density.npz")
-    scene = load_scene(cfg.scene)
+    scene, calibration = recorded_calibration(run_dir, load_scene(cfg.scene))
     train, holdout = scene.split(OmegaConf.to_container(cfg.holdout) if cfg.holdout is not None else None)
     lo, hi = tuple(saved.bbox_min.tolist()), tuple(saved.bbox_max.tolist())
     nz, ny, nx = saved.density.shape[1:]
@@ -833,5 +932,5 @@ def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> 
     with np.load(run_dir / "density.npz") as f:
         solver_info = json.loads(str(f["solver"])) if "solver" in f.files else {}
     metrics, _ = finish(cfg, run_dir, scene, volume, grid, train, holdout, float(cfg.projector.step),
-                        solver_info, read_photometry(run_dir), native)
+                        solver_info, read_photometry(run_dir), native, calibration)
     return metrics
