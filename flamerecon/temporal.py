@@ -24,6 +24,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import torch
 
@@ -76,7 +77,7 @@ def coupling_pairs(voxel_indices: list[torch.Tensor]) -> list[tuple[torch.Tensor
     """For each neighbouring pair (t, t+1) the positions (ia, ib) in x_t and x_{t+1} of the
     voxels both hulls hold (``voxel_indices``: sorted flat indices per frame)."""
     pairs = []
-    for a, b in zip(voxel_indices[:-1], voxel_indices[1:]):
+    for a, b in pairwise(voxel_indices):
         common = a[torch.isin(a, b)]
         pairs.append((torch.searchsorted(a, common), torch.searchsorted(b, common)))
     return pairs
@@ -120,7 +121,7 @@ def joint_objective(frames: list[FrameProblem], opts: JointOptions, xs: list[tor
 
 
 def solve_joint(frames: list[FrameProblem], opts: JointOptions,
-                x0: list[torch.Tensor] | None = None,
+                x0: list[torch.Tensor] | None = None, norms_sq: list[float] | None = None,
                 callback: Callable[[int, list[torch.Tensor], dict], None] | None = None) -> JointResult:
     """Condat-Vu on the joint problem (module doc), from ``x0`` (or zeros) and zero duals:
 
@@ -130,7 +131,8 @@ def solve_joint(frames: list[FrameProblem], opts: JointOptions,
     with grad_t = A_t^T(A_t x_t - b_t) + w2 (T^T T x)_t. The smooth part's Lipschitz constant
     is at most L = max_t 1.01||A_t||^2 + 4 w2, ||[D; T]||^2 <= 12 + 4 = 16; sigma =
     dual_step L / 32 and tau = 1 / (1.01 (L/2 + 16 sigma)) satisfy the convergence condition
-    1/tau - sigma ||K||^2 > L/2 (Condat 2013, Thm 3.1). All tensors stay on ``b``'s device.
+    1/tau - sigma ||K||^2 > L/2 (Condat 2013, Thm 3.1). ``norms_sq``: the ||A_t||^2 when
+    known (else power iteration). All tensors stay on ``b``'s device.
     """
     started = time.perf_counter()
     if opts.l2 < 0 or opts.tv < 0:
@@ -142,7 +144,8 @@ def solve_joint(frames: list[FrameProblem], opts: JointOptions,
     T = TemporalDifference(coupling_pairs([f.voxel_index.to(device) for f in frames]), sizes)
     xs = ([torch.zeros(m, C, dtype=dtype, device=device) for m in sizes] if x0 is None
           else [x.to(device, dtype).clamp_min(0).clone() for x in x0])
-    L = max(1.01 * power_norm_sq(f.A, m, device, dtype) for f, m in zip(frames, sizes)) + 4.0 * opts.l2
+    norms_sq = norms_sq or [power_norm_sq(f.A, m, device, dtype) for f, m in zip(frames, sizes)]
+    L = 1.01 * max(norms_sq) + 4.0 * opts.l2
     K_sq = HullGradient.norm_sq_bound + TemporalDifference.norm_sq_bound
     sigma = opts.dual_step * L / (2.0 * K_sq)
     tau = 1.0 / (1.01 * (0.5 * L + sigma * K_sq))
