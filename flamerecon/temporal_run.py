@@ -16,6 +16,7 @@ keyed ``NNNNNN/<view>`` and the joint solve's record.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -86,18 +87,20 @@ def joint_options(cfg: DictConfig, frames: list[FrameProblem], norms_sq: list[fl
     )
 
 
-def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
-    """Prepare every frame of ``scene.frames``, solve them jointly, write the run folder (module
-    doc); returns the combined metrics (views keyed ``NNNNNN/<view>``)."""
-    if resume:
-        raise ConfigError("resume: a joint solve over scene.frames keeps no checkpoint; run it again")
-    check_supported(cfg)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(int(cfg.seed))
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    device = resolve_device(cfg.device)
+@dataclass
+class PreparedFrames:
+    """Every frame of ``scene.frames`` built as a single-frame run would be (one entry each)."""
+
+    numbers: list[int]
+    configs: list[DictConfig]
+    setups: list[Setup]
+    problems: list[FrameProblem]
+    l1s: list[float]
+    norms_sq: list[float]  # ||A_t||^2 by power iteration
+
+
+def prepare_frames(cfg: DictConfig, device: torch.device) -> PreparedFrames:
+    """Scene, silhouettes, hull, operator and absolute weights of each frame (same grid box)."""
     numbers = frame_range(cfg)
     configs = [frame_config(cfg, t) for t in numbers]
     setups, frames, l1s = [], [], []
@@ -115,6 +118,24 @@ def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = Fals
         setups.append(setup)
         l1s.append(l1)
     norms_sq = [power_norm_sq(f.A, int(f.voxel_index.numel()), device, f.b.dtype) for f in frames]
+    return PreparedFrames(numbers, configs, setups, frames, l1s, norms_sq)
+
+
+def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
+    """Prepare every frame of ``scene.frames``, solve them jointly, write the run folder (module
+    doc); returns the combined metrics (views keyed ``NNNNNN/<view>``)."""
+    if resume:
+        raise ConfigError("resume: a joint solve over scene.frames keeps no checkpoint; run it again")
+    check_supported(cfg)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(int(cfg.seed))
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    device = resolve_device(cfg.device)
+    prepared = prepare_frames(cfg, device)
+    numbers, configs, setups, frames = prepared.numbers, prepared.configs, prepared.setups, prepared.problems
+    l1s, norms_sq = prepared.l1s, prepared.norms_sq
     opts = joint_options(cfg, frames, norms_sq)
     writer = RunWriter(str(run_dir))
     try:
