@@ -120,8 +120,8 @@ def fit_absorption(setup, volume: torch.Tensor, l1: float = 0.0, tv: float = 0.0
         adam.step()
         with torch.no_grad():
             x.clamp_(min=0)
-        losses.append(float(loss))
-    return AbsorptionFit(grid.dense(x.detach(), index), float(log_sigma.exp()), losses)
+        losses.append(float(loss.detach()))
+    return AbsorptionFit(grid.dense(x.detach(), index), float(log_sigma.detach().exp()), losses)
 
 
 def render_absorbing(volume: torch.Tensor, grid: VoxelGrid, cams, sigma: float, step: float = 0.5

@@ -11,7 +11,9 @@ and P_t the restriction to the voxels in *both* frames' hulls (:func:`coupling_p
 intersection, not the union: a voxel outside frame t's hull is zero in frame t because its
 silhouettes say so (carved, not estimated), and coupling there would drag the neighbour's
 density towards zero exactly where the smoke moved to; the prior should only trade noise
-between estimates the data leave uncertain in both frames.
+between estimates the data leave uncertain in both frames. Smoke rises, so the pairing may
+follow a coarse motion: voxel v of frame t against voxel v + s_t of frame t+1, with s_t the
+whole-cell shift that best carries one frame's density onto the next (:func:`estimate_shift`).
 
 Solved by the Condat-Vu primal-dual iteration over the stacked frames: the data terms and the
 squared coupling enter through their gradient, L1 + nonnegativity through a shifted clamp,
@@ -27,6 +29,7 @@ from dataclasses import dataclass, field
 from itertools import pairwise
 
 import torch
+import torch.nn.functional as F
 
 from .solvers.base import LinearOperator, power_norm_sq
 from .solvers.primal_dual_tv import project_balls, total_variation
@@ -73,14 +76,39 @@ class JointResult:
     history: list[dict] = field(default_factory=list)
 
 
-def coupling_pairs(voxel_indices: list[torch.Tensor]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+def coupling_pairs(voxel_indices: list[torch.Tensor], grid_shape: tuple[int, int, int] | None = None,
+                   shifts: list[tuple[int, int, int]] | None = None
+                   ) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """For each neighbouring pair (t, t+1) the positions (ia, ib) in x_t and x_{t+1} of the
-    voxels both hulls hold (``voxel_indices``: sorted flat indices per frame)."""
+    voxels both hulls hold (``voxel_indices``: sorted flat indices per frame). With ``shifts``
+    (one (dx, dy, dz) in cells per pair; needs ``grid_shape`` (nz, ny, nx)) voxel v of frame t
+    is paired with voxel v + shift of frame t+1: the coupling follows that motion."""
     pairs = []
-    for a, b in pairwise(voxel_indices):
-        common = a[torch.isin(a, b)]
-        pairs.append((torch.searchsorted(a, common), torch.searchsorted(b, common)))
+    for t, (a, b) in enumerate(pairwise(voxel_indices)):
+        target, keep = a, torch.ones_like(a, dtype=torch.bool)
+        if shifts is not None and any(shifts[t]):
+            nz, ny, nx = grid_shape
+            dx, dy, dz = shifts[t]
+            k, j, i = a // (ny * nx), (a // nx) % ny, a % nx
+            keep = ((i + dx >= 0) & (i + dx < nx) & (j + dy >= 0) & (j + dy < ny)
+                    & (k + dz >= 0) & (k + dz < nz))
+            target = a + (dz * ny + dy) * nx + dx  # a constant offset: stays sorted
+        keep &= torch.isin(target, b)
+        pairs.append((keep.nonzero().squeeze(1), torch.searchsorted(b, target[keep])))
     return pairs
+
+
+def estimate_shift(a: torch.Tensor, b: torch.Tensor, max_shift: int) -> tuple[int, int, int]:
+    """The whole-cell motion (dx, dy, dz), each within +-``max_shift``, that best carries
+    volume ``a`` (nz, ny, nx) onto ``b``: the argmax of sum_v a(v) b(v + s), by FFT on
+    volumes zero-padded so that no shift wraps around."""
+    p = int(max_shift)
+    a, b = (F.pad(v.double(), (p, p, p, p, p, p)) for v in (a, b))
+    corr = torch.fft.irfftn(torch.fft.rfftn(a).conj() * torch.fft.rfftn(b), s=a.shape)
+    window = torch.stack(torch.meshgrid(*[torch.arange(-p, p + 1)] * 3, indexing="ij")).reshape(3, -1)
+    values = corr[window[0] % a.shape[0], window[1] % a.shape[1], window[2] % a.shape[2]]
+    dz, dy, dx = window[:, int(values.argmax())].tolist()
+    return int(dx), int(dy), int(dz)
 
 
 class TemporalDifference:
@@ -122,7 +150,8 @@ def joint_objective(frames: list[FrameProblem], opts: JointOptions, xs: list[tor
 
 def solve_joint(frames: list[FrameProblem], opts: JointOptions,
                 x0: list[torch.Tensor] | None = None, norms_sq: list[float] | None = None,
-                callback: Callable[[int, list[torch.Tensor], dict], None] | None = None) -> JointResult:
+                callback: Callable[[int, list[torch.Tensor], dict], None] | None = None,
+                shifts: list[tuple[int, int, int]] | None = None) -> JointResult:
     """Condat-Vu on the joint problem (module doc), from ``x0`` (or zeros) and zero duals:
 
         x_t <- max(0, x_t - tau (grad_t + D_t^T y_t + T_t^T z + l1_t))
@@ -132,7 +161,8 @@ def solve_joint(frames: list[FrameProblem], opts: JointOptions,
     is at most L = max_t 1.01||A_t||^2 + 4 w2, ||[D; T]||^2 <= 12 + 4 = 16; sigma =
     dual_step L / 32 and tau = 1 / (1.01 (L/2 + 16 sigma)) satisfy the convergence condition
     1/tau - sigma ||K||^2 > L/2 (Condat 2013, Thm 3.1). ``norms_sq``: the ||A_t||^2 when
-    known (else power iteration). All tensors stay on ``b``'s device.
+    known (else power iteration); ``shifts``: a motion per neighbouring pair
+    (:func:`coupling_pairs`). All tensors stay on ``b``'s device.
     """
     started = time.perf_counter()
     if opts.l2 < 0 or opts.tv < 0:
@@ -141,7 +171,8 @@ def solve_joint(frames: list[FrameProblem], opts: JointOptions,
     C = frames[0].b.shape[1]
     sizes = [int(f.voxel_index.numel()) for f in frames]
     grads_op = [HullGradient(f.grid_shape, f.voxel_index.to(device)) for f in frames]
-    T = TemporalDifference(coupling_pairs([f.voxel_index.to(device) for f in frames]), sizes)
+    T = TemporalDifference(coupling_pairs([f.voxel_index.to(device) for f in frames],
+                                          frames[0].grid_shape, shifts), sizes)
     xs = ([torch.zeros(m, C, dtype=dtype, device=device) for m in sizes] if x0 is None
           else [x.to(device, dtype).clamp_min(0).clone() for x in x0])
     norms_sq = norms_sq or [power_norm_sq(f.A, m, device, dtype) for f, m in zip(frames, sizes)]

@@ -16,7 +16,8 @@ keyed ``NNNNNN/<view>`` and the joint solve's record.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ from .scenes import load_scene
 from .solvers import lambda_max
 from .solvers.base import power_norm_sq
 from .tb_logging import RunWriter
-from .temporal import FrameProblem, JointOptions, JointResult, solve_joint
+from .temporal import FrameProblem, JointOptions, JointResult, estimate_shift, solve_joint
 
 FRAMES_FOLDER = "frames"
 JOINT_SOLVERS = ("tv", "fista")  # the per-frame objectives the joint solve extends
@@ -121,6 +122,25 @@ def prepare_frames(cfg: DictConfig, device: torch.device) -> PreparedFrames:
     return PreparedFrames(numbers, configs, setups, frames, l1s, norms_sq)
 
 
+def solve_frames(prepared: PreparedFrames, opts: JointOptions, motion: str = "none",
+                 max_shift: int = 3, callback=None) -> tuple[JointResult, list[tuple[int, int, int]] | None]:
+    """The joint solve; with ``motion="shift"`` first the uncoupled solve, then one whole-cell
+    shift per neighbouring pair estimated from its densities (:func:`~.temporal.estimate_shift`),
+    then the coupled solve along those shifts from the uncoupled solution. Returns the result
+    (seconds: both solves) and the shifts (None without motion)."""
+    if motion == "none":
+        return solve_joint(prepared.problems, opts, norms_sq=prepared.norms_sq, callback=callback), None
+    if motion != "shift":
+        raise ConfigError(f"temporal.motion: unknown '{motion}'; use none or shift")
+    free = solve_joint(prepared.problems, replace(opts, l2=0.0, tv=0.0), norms_sq=prepared.norms_sq)
+    volumes = [s.volume(x).mean(0) for s, x in zip(prepared.setups, free.xs)]
+    shifts = [estimate_shift(a, b, max_shift) for a, b in pairwise(volumes)]
+    result = solve_joint(prepared.problems, opts, x0=free.xs, norms_sq=prepared.norms_sq,
+                         callback=callback, shifts=shifts)
+    result.seconds += free.seconds
+    return result, shifts
+
+
 def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
     """Prepare every frame of ``scene.frames``, solve them jointly, write the run folder (module
     doc); returns the combined metrics (views keyed ``NNNNNN/<view>``)."""
@@ -139,12 +159,15 @@ def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = Fals
     opts = joint_options(cfg, frames, norms_sq)
     writer = RunWriter(str(run_dir))
     try:
-        result = solve_joint(frames, opts, norms_sq=norms_sq, callback=lambda it, xs, info: writer.scalars(
-            it, {k: v for k, v in info.items() if isinstance(v, float)}))
+        t_cfg = cfg.get("temporal") or {}
+        result, shifts = solve_frames(
+            prepared, opts, str(t_cfg.get("motion", "none")), int(t_cfg.get("max_shift", 3)),
+            lambda it, xs, info: writer.scalars(it, {k: v for k, v in info.items() if isinstance(v, float)}))
         temporal = {"frames": [numbers[0], numbers[-1]], "l2": opts.l2, "tv": opts.tv,
                     "l2_rel": float((cfg.get("temporal") or {}).get("l2", 0.0)),
                     "tv_rel": float((cfg.get("temporal") or {}).get("tv", 0.0)),
-                    "coupled_on": "pairwise intersection of neighbouring frames' hulls"}
+                    "coupled_on": "pairwise intersection of neighbouring frames' hulls",
+                    "shifts": shifts}
         combined: dict = {"heldout": {}, "train": {}, "frames": {}}
         for t, fcfg, setup, x, l1 in zip(numbers, configs, setups, result.xs, l1s):
             combined["frames"][f"{t:06d}"] = write_frame(

@@ -1,11 +1,12 @@
 """Joint frame solves (scene.frames) against independent per-frame solves, on held-out views.
 
     PYTHONPATH=. python scripts/temporal_eval.py scene=scalarflow scene.frames=[30,34] \
-        --weights 0:0 0.01:0 0:0.03 [--absorption] [more overrides ...]
+        --weights 0:0 0.01:0 0:0.03:shift [--absorption] [more overrides ...]
 
 Every frame is prepared once (silhouettes, hull, operator). Then, per frame, the baseline:
 the single-frame solver of the config (``solver=tv``: the pipeline's own solve), and per
-``--weights L2:TV`` (temporal.l2 and temporal.tv) one joint solve of all frames. Prints, per
+``--weights L2:TV[:shift]`` (temporal.l2, temporal.tv, temporal.motion) one joint solve of
+all frames. Prints, per
 frame and method, held-out PSNR (each held-out view), mean training PSNR and solve seconds
 (the joint solve's seconds are for all frames together), then the means. With
 ``--absorption`` each method's densities are also refitted with emission + absorption
@@ -26,8 +27,7 @@ from omegaconf import OmegaConf
 
 from flamerecon.evaluation import score
 from flamerecon.pipeline import resolve_device, solve
-from flamerecon.temporal import solve_joint
-from flamerecon.temporal_run import joint_options, prepare_frames
+from flamerecon.temporal_run import joint_options, prepare_frames, solve_frames
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,7 +55,7 @@ def absorbing_scores(setup, volume, cfg) -> tuple[dict[str, float], float, float
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="config overrides; must set scene.frames")
-    parser.add_argument("--weights", nargs="+", default=["0:0"], metavar="L2:TV")
+    parser.add_argument("--weights", nargs="+", default=["0:0"], metavar="L2:TV[:shift]")
     parser.add_argument("--no-baseline", action="store_true", help="skip the per-frame solves")
     parser.add_argument("--absorption", action="store_true", help="also refit with absorption")
     args = parser.parse_args(argv)
@@ -83,13 +83,16 @@ def main(argv: list[str] | None = None) -> int:
             seconds.append(result.seconds)
         methods.append((f"per-frame {cfg.solver.name}", list(zip(volumes, seconds))))
     for spec in args.weights:
-        l2, tv = (float(v) for v in spec.split(":"))
+        parts = spec.split(":")
+        l2, tv, motion = float(parts[0]), float(parts[1]), parts[2] if len(parts) > 2 else "none"
         wcfg = OmegaConf.merge(cfg, {"temporal": {"l2": l2, "tv": tv}})
         opts = joint_options(wcfg, prepared.problems, prepared.norms_sq)
-        result = solve_joint(prepared.problems, opts, norms_sq=prepared.norms_sq)
+        result, shifts = solve_frames(prepared, opts, motion, int(cfg.temporal.max_shift))
         volumes = [s.volume(x) for s, x in zip(prepared.setups, result.xs)]
-        methods.append((f"joint l2={l2:g} tv={tv:g} ({result.iterations} it)",
-                        [(v, result.seconds) for v in volumes]))
+        if shifts is not None:
+            print(f"l2={l2:g} tv={tv:g}: shifts (dx, dy, dz) between frames {shifts}")
+        label = f"joint l2={l2:g} tv={tv:g}" + (" shift" if shifts is not None else "")
+        methods.append((f"{label} ({result.iterations} it)", [(v, result.seconds) for v in volumes]))
     for name, per_frame in methods:
         for t, setup, (volume, secs) in zip(prepared.numbers, prepared.setups, per_frame):
             held, train = scores(setup, volume)

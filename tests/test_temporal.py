@@ -10,7 +10,13 @@ from scipy.optimize import minimize
 
 from flamerecon.solvers import Problem, make_solver
 from flamerecon.sparse_ops import CsrOperator
-from flamerecon.temporal import FrameProblem, JointOptions, coupling_pairs, solve_joint
+from flamerecon.temporal import (
+    FrameProblem,
+    JointOptions,
+    coupling_pairs,
+    estimate_shift,
+    solve_joint,
+)
 
 
 class Dense:
@@ -158,3 +164,25 @@ def test_joint_solve_runs_on_sparse_operators_in_float32():
     joint = solve_joint(frames, JointOptions(l2=0.5, tv=0.1, max_iters=200, tol=1e-9))
     assert all(x.dtype == torch.float32 and (x >= 0).all() for x in joint.xs)
     assert joint.history[-1]["objective"] < joint.history[0]["objective"]
+
+
+def test_estimate_shift_recovers_a_known_motion():
+    g = torch.Generator().manual_seed(5)
+    a = torch.zeros(12, 10, 14)
+    a[3:7, 2:6, 4:9] = torch.rand(4, 4, 5, generator=g) + 0.5
+    b = torch.roll(a, shifts=(2, -1, 1), dims=(0, 1, 2))  # dz=2, dy=-1, dx=1
+    assert estimate_shift(a, b, 3) == (1, -1, 2)
+    assert estimate_shift(a, a, 3) == (0, 0, 0)
+
+
+def test_shifted_pairs_follow_the_motion():
+    shape = (3, 4, 5)  # nz, ny, nx
+    hull_a = torch.arange(0, 60, 2)
+    hull_b = torch.arange(0, 60, 3)
+    (ia, ib), = coupling_pairs([hull_a, hull_b], shape, [(1, 0, 1)])
+    expected = []
+    for pa, v in enumerate(hull_a.tolist()):
+        k, i = v // 20, v % 5
+        if i + 1 < 5 and k + 1 < 3 and (w := v + 20 + 1) in hull_b.tolist():
+            expected.append((pa, hull_b.tolist().index(w)))
+    assert list(zip(ia.tolist(), ib.tolist())) == expected and expected
