@@ -64,14 +64,16 @@ def integrate_absorbing(volume: torch.Tensor, grid: VoxelGrid, rays: Rays, sigma
 class AbsorptionOptions:
     """Adam on (density, log sigma): ``iters`` steps, density step ``lr`` times the initial
     density's maximum, log-sigma step ``lr_sigma``; sigma starts where the brightest training
-    ray's optical depth is ``start_depth``; ``tv_eps`` smooths the TV penalty's kink
-    (relative to the initial maximum)."""
+    ray's optical depth is ``start_depth`` (``fit_sigma=False``: sigma stays 0, the same refit
+    of the linear model, a control); ``tv_eps`` smooths the TV penalty's kink (relative to the
+    initial maximum)."""
 
     iters: int = 60
-    lr: float = 0.01
+    lr: float = 0.002
     lr_sigma: float = 0.05
     start_depth: float = 0.1
     tv_eps: float = 1e-3
+    fit_sigma: bool = True
 
 
 @dataclass
@@ -107,12 +109,15 @@ def fit_absorption(setup, volume: torch.Tensor, l1: float = 0.0, tv: float = 0.0
                              device=x0.device, requires_grad=True)
     D = HullGradient(grid.shape, index) if tv > 0 else None
     eps = opts.tv_eps * peak
-    adam = torch.optim.Adam([{"params": [x], "lr": opts.lr * peak},
-                             {"params": [log_sigma], "lr": opts.lr_sigma}])
+    groups = [{"params": [x], "lr": opts.lr * peak}]
+    if opts.fit_sigma:
+        groups.append({"params": [log_sigma], "lr": opts.lr_sigma})
+    adam = torch.optim.Adam(groups)
     losses = []
     for _ in range(opts.iters):
         adam.zero_grad()
-        pred = integrate_absorbing(grid.dense(x, index), grid, rays, log_sigma.exp(), setup.step, box)
+        sigma = log_sigma.exp() if opts.fit_sigma else 0.0
+        pred = integrate_absorbing(grid.dense(x, index), grid, rays, sigma, setup.step, box)
         loss = 0.5 * (pred - setup.pixels).pow(2).sum() + l1 * x.sum()
         if D is not None:
             loss = loss + tv * (D.forward(x).pow(2).sum(0) + eps * eps).sqrt().sum()
@@ -121,7 +126,8 @@ def fit_absorption(setup, volume: torch.Tensor, l1: float = 0.0, tv: float = 0.0
         with torch.no_grad():
             x.clamp_(min=0)
         losses.append(float(loss.detach()))
-    return AbsorptionFit(grid.dense(x.detach(), index), float(log_sigma.detach().exp()), losses)
+    sigma = float(log_sigma.detach().exp()) if opts.fit_sigma else 0.0
+    return AbsorptionFit(grid.dense(x.detach(), index), sigma, losses)
 
 
 def render_absorbing(volume: torch.Tensor, grid: VoxelGrid, cams, sigma: float, step: float = 0.5

@@ -67,7 +67,8 @@ def test_bad_frames_and_unsupported_options_are_refused(tmp_path):
     for overrides, field in ((["scene.frames=[3,1]"], "scene.frames"),
                              (["scene.frames=[0]"], "scene.frames"),
                              (["solver=sart"], "solver.name"),
-                             (["grid.levels=[8]"], "grid.levels")):
+                             (["grid.levels=[8]"], "grid.levels"),
+                             (["temporal.l2=0.1", "temporal.motion=optical"], "temporal.motion")):
         try:
             reconstruct_frames(cfg(*overrides), tmp_path)
         except ConfigError as err:
