@@ -105,7 +105,8 @@ def estimate_shift(a: torch.Tensor, b: torch.Tensor, max_shift: int) -> tuple[in
     p = int(max_shift)
     a, b = (F.pad(v.double(), (p, p, p, p, p, p)) for v in (a, b))
     corr = torch.fft.irfftn(torch.fft.rfftn(a).conj() * torch.fft.rfftn(b), s=a.shape)
-    window = torch.stack(torch.meshgrid(*[torch.arange(-p, p + 1)] * 3, indexing="ij")).reshape(3, -1)
+    offsets = torch.arange(-p, p + 1, device=corr.device)
+    window = torch.stack(torch.meshgrid(offsets, offsets, offsets, indexing="ij")).reshape(3, -1)
     values = corr[window[0] % a.shape[0], window[1] % a.shape[1], window[2] % a.shape[2]]
     dz, dy, dx = window[:, int(values.argmax())].tolist()
     return int(dx), int(dy), int(dz)

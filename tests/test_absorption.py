@@ -77,3 +77,12 @@ def test_fit_from_the_linear_solution_lowers_the_loss():
     assert fit.losses[-1] < fit.losses[0]
     assert fit.sigma > 0 and math.isfinite(fit.sigma)
     assert float(fit.volume.min()) >= 0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")
+def test_absorbing_renderer_on_cuda_matches_cpu(box_grid):
+    rays = random_rays(box_grid, 100)
+    volume = torch.rand(2, *box_grid.shape, generator=torch.Generator().manual_seed(2))
+    cpu = integrate_absorbing(volume, box_grid, rays, 0.8)
+    gpu = integrate_absorbing(volume.cuda(), box_grid, rays.to("cuda"), 0.8)
+    torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-5, rtol=1e-5)

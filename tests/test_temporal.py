@@ -186,3 +186,18 @@ def test_shifted_pairs_follow_the_motion():
         if i + 1 < 5 and k + 1 < 3 and (w := v + 20 + 1) in hull_b.tolist():
             expected.append((pa, hull_b.tolist().index(w)))
     assert list(zip(ia.tolist(), ib.tolist())) == expected and expected
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")
+def test_joint_solve_on_cuda_matches_cpu():
+    frames = frames_on_line(HULLS, l1=0.4, tv=0.5, seed=1)
+    opts = JointOptions(l2=1.5, tv=0.3, max_iters=500, tol=0.0)
+    cpu = solve_joint(frames, opts)
+    cuda = [FrameProblem(Dense(f.A.A.cuda()), f.b.cuda(), f.l1, f.tv, f.grid_shape,
+                         f.voxel_index.cuda()) for f in frames]
+    gpu = solve_joint(cuda, opts)
+    for a, b in zip(cpu.xs, gpu.xs):
+        torch.testing.assert_close(b.cpu(), a, atol=1e-8, rtol=1e-6)
+    vol = torch.rand(6, 7, 8, dtype=torch.float64)
+    assert estimate_shift(vol.cuda(), torch.roll(vol, 1, 0).cuda(), 2) == estimate_shift(
+        vol, torch.roll(vol, 1, 0), 2)
