@@ -78,11 +78,12 @@ class AbsorptionOptions:
 
 @dataclass
 class AbsorptionFit:
-    """The fitted density (C, nz, ny, nx), sigma, and the loss per iteration."""
+    """The fitted density (C, nz, ny, nx), sigma (and where it started), the loss per iteration."""
 
     volume: torch.Tensor
     sigma: float
     losses: list[float]
+    sigma_start: float = 0.0
 
 
 def training_rays(setup) -> Rays:
@@ -105,7 +106,8 @@ def fit_absorption(setup, volume: torch.Tensor, l1: float = 0.0, tv: float = 0.0
     peak = float(x0.max()) if float(x0.max()) > 0 else 1.0
     depth = float((setup.operator.forward(x0).mean(1)).max()) if x0.numel() else 0.0
     x = x0.clone().requires_grad_(True)
-    log_sigma = torch.tensor(math.log(opts.start_depth / max(depth, 1e-12)), dtype=x0.dtype,
+    sigma_start = opts.start_depth / max(depth, 1e-12)
+    log_sigma = torch.tensor(math.log(sigma_start), dtype=x0.dtype,
                              device=x0.device, requires_grad=True)
     D = HullGradient(grid.shape, index) if tv > 0 else None
     eps = opts.tv_eps * peak
@@ -127,7 +129,8 @@ def fit_absorption(setup, volume: torch.Tensor, l1: float = 0.0, tv: float = 0.0
             x.clamp_(min=0)
         losses.append(float(loss.detach()))
     sigma = float(log_sigma.detach().exp()) if opts.fit_sigma else 0.0
-    return AbsorptionFit(grid.dense(x.detach(), index), sigma, losses)
+    return AbsorptionFit(grid.dense(x.detach(), index), sigma, losses,
+                         sigma_start if opts.fit_sigma else 0.0)
 
 
 def render_absorbing(volume: torch.Tensor, grid: VoxelGrid, cams, sigma: float, step: float = 0.5
