@@ -590,6 +590,10 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
     :class:`~flamerecon.errors.SolveDiverged` after writing the last good iterate's outputs
     (a coarse level that diverges writes none).
     """
+    if cfg.scene.get("frames") is not None:  # consecutive frames solved jointly (time as a prior)
+        from .temporal_run import reconstruct_frames
+
+        return reconstruct_frames(cfg, run_dir, resume)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
