@@ -7,13 +7,12 @@ import math
 
 import pytest
 import torch
-from conftest import random_rays
 
 from flamerecon.absorption import AbsorptionOptions, fit_absorption, integrate_absorbing
 from flamerecon.grid import VoxelGrid
 from flamerecon.pipeline import prepare, solve
 from flamerecon.projector import Rays, integrate_dense
-from tests.tiny_scene import tiny_cfg, tiny_synthetic
+from tests.helpers import random_rays, tiny_cfg, tiny_synthetic
 
 
 @pytest.mark.parametrize("sigma", [0.05, 0.7, 3.0])

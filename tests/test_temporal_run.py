@@ -9,13 +9,15 @@ import sys
 from itertools import pairwise
 
 import numpy as np
-from conftest import repo_env
 from hydra import compose, initialize_config_dir
 
 from flamerecon.errors import ConfigError
 from flamerecon.export import load_density
 from flamerecon.temporal_run import reconstruct_frames
-from tests.tiny_scene import REPO, TINY
+from tests.helpers import FAST, REPO, repo_env
+from tests.helpers import TINY as TINY_SCENE
+
+TINY = [*TINY_SCENE, *FAST]  # the tiny config with the short solve
 
 FRAMES = ["scene.frames=[0,2]", "solver=tv", "solver.max_iters=40"]
 
