@@ -26,8 +26,8 @@ import torch.nn.functional as F
 from .cameras import camera_subset, cameras_to
 from .evaluation import score_views
 from .grid import VoxelGrid
+from .operators import HullGradient
 from .projector import Rays, _chunks, camera_rays, ray_samples, support_box
-from .solvers.smoothness import HullGradient
 
 
 def _escape_factor(a: torch.Tensor) -> torch.Tensor:

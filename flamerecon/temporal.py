@@ -31,9 +31,9 @@ from itertools import pairwise
 import torch
 import torch.nn.functional as F
 
+from .operators import HullGradient
 from .solvers.base import LinearOperator, power_norm_sq
 from .solvers.primal_dual_tv import project_balls, total_variation
-from .solvers.smoothness import HullGradient
 
 
 @dataclass

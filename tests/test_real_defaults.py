@@ -42,6 +42,7 @@ def test_the_synthetic_defaults_are_unchanged():
 def test_scalarflow_debiases_its_fixed_cross_validated_weights():
     cfg = composed("scene=scalarflow")
     assert cfg.debias.method == "gain" and cfg.select.auto is False
+    assert cfg.calibration.refine == "pose"
 
 
 def test_other_captures_choose_their_own_weights_and_the_paper_method_is_one_switch_away():

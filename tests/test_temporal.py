@@ -8,8 +8,8 @@ import pytest
 import torch
 from scipy.optimize import minimize
 
+from flamerecon.operators import CsrOperator
 from flamerecon.solvers import Problem, make_solver
-from flamerecon.sparse_ops import CsrOperator
 from flamerecon.temporal import (
     FrameProblem,
     JointOptions,
