@@ -579,6 +579,17 @@ def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> d
         return reconstruct_in(cfg, run_dir, resume)
 
 
+def start_run(cfg: DictConfig, run_dir: str | Path) -> tuple[Path, torch.device]:
+    """What every reconstruction does first: the run folder made, the seed and thread count
+    set, the device resolved."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(int(cfg.seed))
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    return run_dir, resolve_device(cfg.device)
+
+
 def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
     """Run the whole pipeline for ``cfg`` and write the run folder; returns metrics.json's dict.
 
@@ -594,12 +605,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -
         from .temporal_run import reconstruct_frames
 
         return reconstruct_frames(cfg, run_dir, resume)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(int(cfg.seed))
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    device = resolve_device(cfg.device)
+    run_dir, device = start_run(cfg, run_dir)
     if cfg.solver.name not in SOLVERS:
         raise ConfigError(f"solver.name: unknown solver '{cfg.solver.name}'; choose one of {sorted(SOLVERS)}")
     ckpt = load_checkpoint(run_dir) if resume else None

@@ -25,9 +25,19 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from .atomic import write_json_atomic
+from .debias import debias
 from .errors import ConfigError
 from .export import save_density
-from .pipeline import Setup, cameras_record, finish, make_problem, prepare, resolve_device
+from .pipeline import (
+    Setup,
+    calibrated_scene,
+    cameras_record,
+    debias_options,
+    finish,
+    make_problem,
+    prepare,
+    start_run,
+)
 from .scenes import load_scene
 from .solvers import lambda_max
 from .solvers.base import power_norm_sq
@@ -69,6 +79,9 @@ def check_supported(cfg: DictConfig) -> None:
         raise ConfigError("init: not supported with scene.frames; drop init=")
     if (cfg.get("photometry") or {}).get("fit_gain"):
         raise ConfigError("photometry.fit_gain: not supported with scene.frames; set it false")
+    if (cfg.get("select") or {}).get("auto"):
+        raise ConfigError("select.auto: not supported with scene.frames (one set of weights for all "
+                          "frames); set select.auto=false, or choose weights on a single frame")
 
 
 def joint_options(cfg: DictConfig, frames: list[FrameProblem], norms_sq: list[float]) -> JointOptions:
@@ -98,15 +111,18 @@ class PreparedFrames:
     problems: list[FrameProblem]
     l1s: list[float]
     norms_sq: list[float]  # ||A_t||^2 by power iteration
+    calibrations: list[dict | None]  # each frame's calibration.refine record (None when off)
 
 
 def prepare_frames(cfg: DictConfig, device: torch.device) -> PreparedFrames:
     """Scene, silhouettes, hull, operator and absolute weights of each frame (same grid box)."""
     numbers = frame_range(cfg)
     configs = [frame_config(cfg, t) for t in numbers]
-    setups, frames, l1s = [], [], []
+    setups, frames, l1s, calibrations = [], [], [], []
     for fcfg in configs:
-        setup = prepare(fcfg, load_scene(fcfg.scene), device)
+        scene, calibration = calibrated_scene(fcfg, load_scene(fcfg.scene), device)
+        calibrations.append(calibration)
+        setup = prepare(fcfg, scene, device)
         if setups and (setup.grid.resolution != setups[0].grid.resolution
                        or setup.grid.bbox_min != setups[0].grid.bbox_min
                        or setup.grid.bbox_max != setups[0].grid.bbox_max):
@@ -119,7 +135,7 @@ def prepare_frames(cfg: DictConfig, device: torch.device) -> PreparedFrames:
         setups.append(setup)
         l1s.append(l1)
     norms_sq = [power_norm_sq(f.A, int(f.voxel_index.numel()), device, f.b.dtype) for f in frames]
-    return PreparedFrames(numbers, configs, setups, frames, l1s, norms_sq)
+    return PreparedFrames(numbers, configs, setups, frames, l1s, norms_sq, calibrations)
 
 
 def solve_frames(prepared: PreparedFrames, opts: JointOptions, motion: str = "none",
@@ -147,12 +163,7 @@ def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = Fals
     if resume:
         raise ConfigError("resume: a joint solve over scene.frames keeps no checkpoint; run it again")
     check_supported(cfg)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    torch.manual_seed(int(cfg.seed))
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    device = resolve_device(cfg.device)
+    run_dir, device = start_run(cfg, run_dir)
     prepared = prepare_frames(cfg, device)
     numbers, configs, setups, frames = prepared.numbers, prepared.configs, prepared.setups, prepared.problems
     l1s, norms_sq = prepared.l1s, prepared.norms_sq
@@ -169,9 +180,10 @@ def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = Fals
                     "coupled_on": "pairwise intersection of neighbouring frames' hulls",
                     "shifts": shifts}
         combined: dict = {"heldout": {}, "train": {}, "frames": {}}
-        for t, fcfg, setup, x, l1 in zip(numbers, configs, setups, result.xs, l1s):
+        for t, fcfg, setup, x, l1, calibration in zip(numbers, configs, setups, result.xs, l1s,
+                                                      prepared.calibrations):
             combined["frames"][f"{t:06d}"] = write_frame(
-                fcfg, run_dir / FRAMES_FOLDER / f"{t:06d}", setup, x, l1, result, temporal)
+                fcfg, run_dir / FRAMES_FOLDER / f"{t:06d}", setup, x, l1, result, temporal, calibration)
             for part in ("heldout", "train"):
                 for view, values in combined["frames"][f"{t:06d}"][part].items():
                     combined[part][f"{t:06d}/{view}"] = values
@@ -191,19 +203,21 @@ def reconstruct_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = Fals
 
 
 def write_frame(cfg: DictConfig, folder: Path, setup: Setup, x: torch.Tensor, l1: float,
-                result: JointResult, temporal: dict) -> dict:
-    """One frame's density.npz, cameras.json, metrics.json and renders/ in ``folder``."""
+                result: JointResult, temporal: dict, calibration: dict | None = None) -> dict:
+    """One frame's density.npz, cameras.json, metrics.json and renders/ in ``folder``, after the
+    run's ``debias`` step (each frame its own gain); ``calibration``: the frame's refinement."""
     folder.mkdir(parents=True, exist_ok=True)
+    x, debiased = debias(debias_options(cfg), setup.operator, setup.pixels, x)
     volume = setup.volume(x)
     info = {"name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
             "seconds": result.seconds, "objective": result.objective,
             "converged": result.converged, "status": "finished", "device": str(x.device),
-            "temporal": temporal}
+            "temporal": temporal, "debias": debiased}
     scene = setup.scene
     save_density(folder / "density.npz", volume.cpu(), setup.grid.bbox_min, setup.grid.bbox_max,
                  [scene.views[i] for i in setup.train], frame=int(cfg.scene.frame),
                  solver=json.dumps(info))
     write_json_atomic(folder / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
     metrics, _ = finish(cfg, folder, scene, volume, setup.grid, setup.train, setup.holdout,
-                        setup.step, info)
+                        setup.step, info, calibration=calibration)
     return metrics

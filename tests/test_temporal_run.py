@@ -70,6 +70,7 @@ def test_bad_frames_and_unsupported_options_are_refused(tmp_path):
                              (["scene.frames=[0]"], "scene.frames"),
                              (["solver=sart"], "solver.name"),
                              (["grid.levels=[8]"], "grid.levels"),
+                             (["select.auto=true"], "select.auto"),
                              (["temporal.l2=0.1", "temporal.motion=optical"], "temporal.motion")):
         try:
             reconstruct_frames(cfg(*overrides), tmp_path)
@@ -82,3 +83,13 @@ def test_bad_frames_and_unsupported_options_are_refused(tmp_path):
                           capture_output=True, text=True, env=repo_env(), timeout=300, check=False)
     assert proc.returncode == 2
     assert "flamerecon: error: scene.frames: need 0 <= first <= last" in proc.stderr
+
+
+def test_each_frame_goes_through_the_runs_debias_step(tmp_path):
+    """A joint solve keeps the single run's steps after the solve: each frame gets its own gain."""
+    reconstruct_frames(cfg("device=cpu", "debias.method=gain"), tmp_path / "run")
+    for t in range(3):
+        metrics = json.loads((tmp_path / "run" / "frames" / f"{t:06d}" / "metrics.json").read_text())
+        record = metrics["solver"]["debias"]
+        assert record["method"] == "gain" and len(record["gain"]) == 3  # one per colour channel
+        assert all(g > 1.0 for g in record["gain"])  # tv and L1 shrink: the unbiased level is higher
