@@ -232,11 +232,6 @@ def choose_weights(cfg: DictConfig, setup: Setup) -> tuple[DictConfig, dict | No
                           f"got {len(setup.train)}; set select.auto=false")
     base = OmegaConf.to_container(cfg.solver, resolve=True)
     base.pop("name")
-    for c in options.candidates:
-        unknown = sorted(set(c) - set(base))
-        if unknown:
-            raise ConfigError(f"select.candidates.{cfg.solver.name}: {unknown} are not options of solver "
-                              f"'{cfg.solver.name}'; valid: {sorted(base)}")
     images = setup.scene.images[setup.train].to(setup.pixels)
     energy = (images.double() ** 2).sum((-2, -1))  # (T, C)
     H, W = setup.scene.image_size
@@ -245,8 +240,8 @@ def choose_weights(cfg: DictConfig, setup: Setup) -> tuple[DictConfig, dict | No
                                setup.pixels, setup.row_view, energy, H * W,
                                [setup.scene.views[v] for v in setup.train],
                                {"grid_shape": setup.grid.shape, "voxel_index": setup.voxel_index})
-    except (TypeError, ValueError) as err:
-        raise ConfigError(f"select.candidates: {err}") from err
+    except (TypeError, ValueError) as err:  # a misspelt candidate key, as make_solver says it
+        raise ConfigError(f"select.candidates.{cfg.solver.name}: {err}") from err
     log.info("weights chosen by leave-one-view-out over the training views: %s", found.chosen)
     return OmegaConf.merge(cfg, {"solver": found.chosen}), found.record()
 
