@@ -1,3 +1,54 @@
-"""flamerecon: sparse multi-view emission tomography of flames and smoke."""
+"""flamerecon: sparse multi-view emission tomography of flames and smoke.
+
+The Python API (what ``python train.py`` does, without Hydra or a run folder)::
+
+    import flamerecon as fr
+
+    scene = fr.load_scene("synthetic")                   # or {"name": "scalarflow", "root": ...}
+    options = fr.ReconstructionOptions()                  # conf/train.yaml's defaults, typed
+    rec = fr.reconstruct(scene, options)                  # hull, operator, solve, refits, debias
+    rec.density                                           # (C, nz, ny, nx) on rec.grid
+    fr.score(rec)["heldout"]                              # PSNR / SSIM per held-out view
+
+Step by step: ``setup = fr.build(scene, options)`` (silhouettes, hull, rays, operator),
+``fr.fit(setup, options)``; ``fr.render(density, grid, cameras)``; ``fr.load_run(folder)``
+reads a CLI run folder back. Names are imported on first use.
+"""
+
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
+
+#: public name -> module it lives in (imported lazily, so ``import flamerecon`` stays cheap).
+API = {
+    "ReconstructionOptions": "options", "GridOptions": "options", "ProjectorOptions": "options",
+    "SilhouetteOptions": "options", "HullOptions": "options", "SolverOptions": "options",
+    "PhotometryOptions": "options", "SelectOptions": "options",
+    "DebiasOptions": "debias", "RefineOptions": "refine_cameras",
+    "Setup": "discretization", "build": "discretization", "make_problem": "discretization",
+    "Reconstruction": "reconstruction", "Fit": "reconstruction", "SolveHook": "reconstruction",
+    "Stage": "reconstruction", "fit": "reconstruction", "reconstruct": "reconstruction",
+    "load_scene": "api", "render": "api", "score": "api",
+    "Run": "run_folder", "load_run": "run_folder",
+    "Problem": "solvers", "make_solver": "solvers", "VoxelGrid": "grid", "Scene": "scenes",
+}
+
+__all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "PhotometryOptions", "Problem",
+           "ProjectorOptions", "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run",
+           "Scene", "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions",
+           "Stage", "VoxelGrid", "build", "fit", "load_run", "load_scene", "make_problem",
+           "make_solver", "reconstruct", "render", "score"]
+
+
+def __getattr__(name: str):
+    if name in API:
+        value = getattr(importlib.import_module(f".{API[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'flamerecon' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *API])

@@ -6,13 +6,12 @@ rendered view, and at the capture's native resolution (the scene loaded again wi
 
 from __future__ import annotations
 
-import copy
+from collections.abc import Mapping
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
 
 from .atomic import atomic_write_bytes, make_folder
 from .cameras import camera_subset, cameras_to
@@ -65,17 +64,15 @@ def render_support(volume: torch.Tensor, grid: VoxelGrid, cams, step: float) -> 
     return out.reshape(cams.batch_size, C, H, W)
 
 
-def native_scene(scene_cfg: DictConfig) -> Scene | None:
+def native_scene(scene_cfg: Mapping) -> Scene | None:
     """The scene at native resolution (``scene.downscale=1``), or None when the run already
     works at it (or its scene has no ``downscale``)."""
     if downscale_factor(scene_cfg) == 1:
         return None
-    cfg = copy.deepcopy(scene_cfg) if isinstance(scene_cfg, DictConfig) else OmegaConf.create(dict(scene_cfg))
-    cfg.downscale = 1
-    return load_scene(cfg)
+    return load_scene({**scene_cfg, "downscale": 1})
 
 
-def native_scores(scene_cfg: DictConfig, volume: torch.Tensor, grid: VoxelGrid, names: list[str],
+def native_scores(scene_cfg: Mapping, volume: torch.Tensor, grid: VoxelGrid, names: list[str],
                   step: float) -> tuple[dict[str, dict[str, float]], tuple[int, int]] | None:
     """Per held-out view name: ``psnr_native``, ``ssim_native`` and ``psnr_black_native`` over
     the full native frame, and the native (width, height); None when there is nothing to add."""

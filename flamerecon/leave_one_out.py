@@ -17,9 +17,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from .atomic import write_json_atomic
 from .device import resolve_device
+from .discretization import build
 from .evaluation import render_scene_views, score_views, silhouette_union, write_renders
 from .options_check import check_options
-from .pipeline import calibrated_scene, prepare, solve, warm_start
+from .pipeline import options_from_config
+from .reconstruction import calibrated_scene, fit, warm_start
 from .scenes import Scene, SceneError, load_scene
 
 #: the per-view numbers averaged into the table's last row.
@@ -45,15 +47,16 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     views = list(views) if views else [v for v in scene.views if v not in exclude]
     if len(scene.views) - len(exclude) < 2:
         raise SceneError(f"leave-one-out: excluding {exclude} leaves fewer than two views of {scene.views}")
-    silhouette = OmegaConf.to_container(cfg.silhouette, resolve=True)
+    options = options_from_config(cfg)
+    silhouette = options.silhouette.as_dict()
     rows = {}
     for name in views:
-        split = cfg.copy()
-        split.holdout = [name, *[e for e in exclude if e != name]]
-        fold, _ = calibrated_scene(split, scene, device)  # calibration.refine: this fold's cameras
-        setup = prepare(split, fold, device)
-        x0 = warm_start(split, fold, device, setup)  # init= and/or grid.levels
-        result, l1, _ = solve(split, setup, x0)
+        split = options.replace(holdout=(name, *[e for e in exclude if e != name]))
+        fold, _ = calibrated_scene(scene, split, device)  # calibration.refine: this fold's cameras
+        setup = build(fold, split, device)
+        x0 = warm_start(fold, split, device, setup)  # init= and/or grid.levels
+        found = fit(setup, split, x0)
+        result, l1 = found.result, found.l1
         v = scene.views.index(name)
         image = render_scene_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)
         masks = silhouette_union(image, scene, [v], silhouette)

@@ -26,18 +26,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from .atomic import write_json_atomic
 from .debias import debias
+from .discretization import Setup
 from .errors import ConfigError
 from .export import save_density
-from .pipeline import (
-    Setup,
-    calibrated_scene,
-    cameras_record,
-    debias_options,
-    finish,
-    make_problem,
-    prepare,
-    start_run,
-)
+from .pipeline import calibrated_scene, make_problem, options_from_config, prepare, start_run
+from .run_folder import cameras_record, scores, write_scores
 from .scenes import load_scene
 from .solvers import lambda_max
 from .solvers.base import power_norm_sq
@@ -207,7 +200,8 @@ def write_frame(cfg: DictConfig, folder: Path, setup: Setup, x: torch.Tensor, l1
     """One frame's density.npz, cameras.json, metrics.json and renders/ in ``folder``, after the
     run's ``debias`` step (each frame its own gain); ``calibration``: the frame's refinement."""
     folder.mkdir(parents=True, exist_ok=True)
-    x, debiased = debias(debias_options(cfg), setup.operator, setup.pixels, x)
+    options = options_from_config(cfg)
+    x, debiased = debias(options.debias, setup.operator, setup.pixels, x)
     volume = setup.volume(x)
     info = {"name": cfg.solver.name, "l1": l1, "iterations": result.iterations,
             "seconds": result.seconds, "objective": result.objective,
@@ -218,6 +212,8 @@ def write_frame(cfg: DictConfig, folder: Path, setup: Setup, x: torch.Tensor, l1
                  [scene.views[i] for i in setup.train], frame=int(cfg.scene.frame),
                  solver=json.dumps(info))
     write_json_atomic(folder / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
-    metrics, _ = finish(cfg, folder, scene, volume, setup.grid, setup.train, setup.holdout,
-                        setup.step, info, calibration=calibration)
+    metrics, held_imgs = scores(scene, volume, setup.grid, setup.train, setup.holdout, setup.step,
+                                options.silhouette.as_dict(), calibration=calibration)
+    metrics["solver"] = info
+    write_scores(folder, metrics, held_imgs, scene, setup.holdout)
     return metrics

@@ -29,10 +29,11 @@ from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w
 from flamerecon.errors import Interrupted
 from flamerecon.export import save_density
 from flamerecon.pipeline import reconstruct
+from flamerecon.run_hook import RunHook
 from flamerecon.runner import FAILED_FILE, run_task
 from flamerecon.scenes import SceneError, load_scene
 from flamerecon.scenes.frames import read_camera_frame
-from tests.helpers import FAST, REPO, repo_env, tiny_cfg, tiny_synthetic
+from tests.helpers import FAST, REPO, interrupt_at, repo_env, tiny_cfg, tiny_synthetic
 from tests.helpers import TINY as TINY_SCENE
 
 TINY = [*TINY_SCENE, *FAST]  # the tiny config with the short solve
@@ -244,7 +245,7 @@ EMPTY_HOLDOUT = {
 def test_empty_holdout_is_refused_before_the_solve(case, tmp_path, capsys, monkeypatch):
     make, message = EMPTY_HOLDOUT[case]
     cfg = make(tmp_path / "capture")
-    monkeypatch.setattr(pipeline, "guarded_solve", lambda *a, **k: pytest.fail("solved"))
+    monkeypatch.setattr(RunHook, "solve", lambda *a, **k: pytest.fail("solved"))
     (tmp_path / "run").mkdir()
     code, line = outcome(capsys, cfg, tmp_path / "run")
     assert code == 2 and re.search(message, line), line
@@ -456,7 +457,7 @@ def _bug_after_the_folder_exists(monkeypatch, tmp_path):
     def boom(*args, **kwargs):
         raise ZeroDivisionError("a bug")
 
-    monkeypatch.setattr(pipeline, "prepare", boom)
+    monkeypatch.setattr("flamerecon.reconstruction.build", boom)
     return tiny_cfg(), tmp_path / "run", None
 
 
@@ -501,19 +502,8 @@ SOLVE = ["grid.resolution=12", "solver.tol=0", "checkpoint.every=10", "solver.ma
 def interrupted_run(tmp_path_factory):
     """A run stopped by SIGINT at iteration 15 (checkpoint.pt holds its state)."""
     run = tmp_path_factory.mktemp("interrupted") / "run"
-    original = pipeline.Monitor.__call__
-
-    def interrupt_at_15(self, it, x, info):
-        original(self, it, x, info)
-        if it == 15:
-            os.kill(os.getpid(), signal.SIGINT)
-
-    pipeline.Monitor.__call__ = interrupt_at_15
-    try:
-        with pytest.raises(Interrupted):
-            reconstruct(tiny_cfg(*SOLVE), run)
-    finally:
-        pipeline.Monitor.__call__ = original
+    with pytest.raises(Interrupted):
+        reconstruct(tiny_cfg(*SOLVE), run, watch=interrupt_at(15))
     (run / ".hydra").mkdir()
     OmegaConf.save(tiny_cfg(*SOLVE), run / ".hydra" / "config.yaml")
     return run
@@ -738,7 +728,7 @@ BEFORE_THE_SOLVE = {  # cases that used to fail only after the solve, or with a 
 def test_refused_before_the_solve(case, tmp_path, capsys, monkeypatch):
     override, message = BEFORE_THE_SOLVE[case]
     monkeypatch.setattr("flamerecon.export._vtk", _no_vtk)
-    monkeypatch.setattr(pipeline, "guarded_solve", lambda *a, **k: pytest.fail("solved"))
+    monkeypatch.setattr(RunHook, "solve", lambda *a, **k: pytest.fail("solved"))
     (tmp_path / "run").mkdir()
     code, line = outcome(capsys, tiny_cfg(override), tmp_path / "run")
     assert code == 2 and re.search(message, line), line

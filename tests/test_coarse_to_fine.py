@@ -7,19 +7,16 @@ levels; bad level lists are refused by name; an interrupted coarse level resumes
 from __future__ import annotations
 
 import json
-import os
-import signal
 
 import numpy as np
 import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from flamerecon import pipeline
 from flamerecon.errors import ConfigError, Interrupted, ResumeError, SolveDiverged
 from flamerecon.pipeline import prepare, reconstruct, solve
 from flamerecon.solvers import Solver
-from tests.helpers import CliRun, tiny_cfg, tiny_synthetic
+from tests.helpers import CliRun, interrupt_at, tiny_cfg, tiny_synthetic
 
 #: every solve runs its whole budget (no early stop), no scheduled checkpoints.
 FIXED = ["solver.tol=0", "solver.max_iters=30", "checkpoint.every=0"]
@@ -149,18 +146,6 @@ def test_bad_level_budget_is_refused_by_name(tmp_path):
         reconstruct(tiny_cfg("grid.levels=[4,8]", "grid.level_iters=[10]"), tmp_path / "run")
 
 
-def _interrupt_at(monkeypatch, tag_root: str, iteration: int) -> None:
-    """SIGINT to this process at ``iteration`` of the level logged under ``tag_root``."""
-    original = pipeline.Monitor.__call__
-
-    def interrupt(self, it, x, info):
-        original(self, it, x, info)
-        if self.tag_root == tag_root and it == iteration:
-            os.kill(os.getpid(), signal.SIGINT)  # the run's handler: checkpoint, then stop
-
-    monkeypatch.setattr(pipeline.Monitor, "__call__", interrupt)
-
-
 @pytest.mark.parametrize("tag_root, message", [
     ("level0/", r"SIGINT received at iteration 20 of coarse level grid.levels\[0\] \(5x8x5 cells\)"),
     ("", r"SIGINT received at iteration 20; the state is saved"),
@@ -170,10 +155,8 @@ def test_interrupted_level_resumes_to_the_uninterrupted_result(tmp_path, monkeyp
     reference = tmp_path / "reference"
     reconstruct(cfg, reference)
     run = tmp_path / "run"
-    _interrupt_at(monkeypatch, tag_root, 20)
     with pytest.raises(Interrupted, match=message):
-        reconstruct(cfg, run)
-    monkeypatch.undo()
+        reconstruct(cfg, run, watch=interrupt_at(20, tag_root))  # the run's handler: checkpoint, stop
     with pytest.raises(ResumeError, match="field 'levels'"):
         reconstruct(tiny_cfg(*FIXED, "grid.levels=[4]", "solver.check_every=5"), run, resume=True)
     reconstruct(cfg, run, resume=True)

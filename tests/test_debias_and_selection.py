@@ -12,9 +12,10 @@ from hydra import compose, initialize_config_dir
 
 from flamerecon.cameras import camera_subset
 from flamerecon.debias import DebiasOptions, debias, training_gain
+from flamerecon.errors import ConfigError
 from flamerecon.evaluation import render_scene_views, score_views
 from flamerecon.hull import hull_footprint
-from flamerecon.pipeline import ConfigError, choose_weights, prepare, solve
+from flamerecon.pipeline import choose_weights, prepare, solve
 from flamerecon.projector import render_image
 from flamerecon.scenes import load_scene
 from flamerecon.solvers import Problem, make_solver

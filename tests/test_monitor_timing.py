@@ -6,9 +6,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from omegaconf import OmegaConf
 
-from flamerecon import pipeline
+from flamerecon import pipeline, run_hook
 from tests.helpers import tiny_cfg
 
 
@@ -30,17 +29,16 @@ class Writer:
 @pytest.mark.parametrize("share", [0.1, None])
 def test_monitor_renders_within_its_share_of_the_solve(monkeypatch, share):
     clock = Clock()
-    monkeypatch.setattr(pipeline.time, "perf_counter", clock)
+    monkeypatch.setattr(run_hook.time, "perf_counter", clock)
     renders = []
 
     def pictures(self, it, x):  # a render costs 1 s, ten solver iterations
         renders.append(it)
         clock.t += 1.0
 
-    monkeypatch.setattr(pipeline.Monitor, "pictures", pictures)
-    cfg = OmegaConf.create({"log": {"eval_every": 1, "eval_share": share}})
-    monitor = pipeline.Monitor(None, Writer(), cfg, 0, "cpu")
-    x = pipeline.torch.zeros(4, 3)
+    monkeypatch.setattr(run_hook.Monitor, "pictures", pictures)
+    monitor = run_hook.Monitor(None, Writer(), eval_every=1, eval_share=share, total=0)
+    x = run_hook.torch.zeros(4, 3)
     start = clock.t
     for it in range(1, 1001):
         clock.t += 0.1  # one solver iteration

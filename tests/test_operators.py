@@ -91,7 +91,8 @@ def test_the_norm_is_the_largest_singular_value_and_is_computed_once(name):
     assert len(calls) == 30  # one power iteration, then the cache
     assert norm_sq(op, dtype=dtype) == first and norm(op, dtype=dtype) == first**0.5
     assert len(calls) == 30
-    assert norm_sq(op, dtype=dtype, iters=31) != first and len(calls) == 61  # another estimate
+    norm_sq(op, dtype=dtype, iters=31)  # another estimate (its value may agree to the last bit)
+    assert len(calls) == 61
     op.adjoint = adjoint
     exact = float(torch.linalg.matrix_norm(dense(op, dtype), 2)) ** 2
     # power iteration approaches ||A||^2 from below; 30 iterations come within 3% here

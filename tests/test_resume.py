@@ -4,7 +4,6 @@ stops, keeps its last good iterate and says so."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -17,12 +16,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from flamerecon import pipeline
 from flamerecon.errors import Interrupted, SolveDiverged
 from flamerecon.pipeline import reconstruct
 from flamerecon.runner import FAILED_FILE, run_task
 from flamerecon.solvers import SOLVERS, Solver, SolveResult, register
-from tests.helpers import FAST, REPO, TINY, repo_env, tiny_cfg
+from tests.helpers import FAST, REPO, TINY, interrupt_at, repo_env, tiny_cfg
 
 SOLVE = ["grid.resolution=12", "solver.tol=0", "checkpoint.every=10"]
 
@@ -31,12 +29,12 @@ SOLVE = ["grid.resolution=12", "solver.tol=0", "checkpoint.every=10"]
 _CHILD = textwrap.dedent(
     """
     import sys, time
-    from flamerecon import pipeline
-    original = pipeline.Monitor.__call__
+    from flamerecon import run_hook
+    original = run_hook.Monitor.__call__
     def slow(self, it, x, info):
         original(self, it, x, info)
         time.sleep(0.05)
-    pipeline.Monitor.__call__ = slow
+    run_hook.Monitor.__call__ = slow
     import runpy
     sys.argv = [sys.argv[1], *sys.argv[2:]]
     runpy.run_path(sys.argv[0], run_name="__main__")
@@ -88,19 +86,10 @@ def test_sigint_then_resume_matches_uninterrupted_run(tmp_path):
 @pytest.mark.slow
 def test_adam_resumes_exactly_from_its_optimizer_state(tmp_path, monkeypatch):
     overrides = ["solver=adam", "solver.max_iters=30", "solver.check_every=5"]
-    original = pipeline.Monitor.__call__
-
-    def interrupt_at_15(self, it, x, info):
-        original(self, it, x, info)
-        if it == 15:
-            os.kill(os.getpid(), signal.SIGINT)  # caught by the run's handler: stop after a checkpoint
-
-    monkeypatch.setattr(pipeline.Monitor, "__call__", interrupt_at_15)
     run = tmp_path / "run"
     cfg = solve_cfg(*overrides)
     with pytest.raises(Interrupted, match="SIGINT received at iteration 15"):
-        reconstruct(cfg, run)
-    monkeypatch.setattr(pipeline.Monitor, "__call__", original)
+        reconstruct(cfg, run, watch=interrupt_at(15))  # the run's handler: checkpoint, then stop
     reconstruct(cfg, run, resume=True)
     reference = tmp_path / "reference"
     reconstruct(cfg, reference)

@@ -7,8 +7,6 @@ from __future__ import annotations
 import copy
 import itertools
 import json
-import os
-import signal
 import subprocess
 import sys
 
@@ -18,7 +16,6 @@ import torch
 from tensorboard.backend.event_processing import event_accumulator as ea
 from tensorboard.plugins.hparams import plugin_data_pb2
 
-from flamerecon import pipeline
 from flamerecon.errors import ConfigError, Interrupted
 from flamerecon.operators import HullGradient, hull_gradient
 from flamerecon.pipeline import reconstruct
@@ -28,6 +25,7 @@ from tests.helpers import (
     REPO,
     TINY,
     csr,
+    interrupt_at,
     objective,
     sklearn_objective,
     tiny_cfg,
@@ -225,18 +223,9 @@ def test_resume_from_state_ends_where_an_uninterrupted_solve_ends(tv_case):
 def test_an_interrupted_run_resumes_from_its_checkpoint_to_the_same_density(tmp_path, monkeypatch):
     cfg = tiny_cfg("grid.resolution=12", "solver=tv", "solver.tv=0.01", "solver.tol=0",
                    "solver.max_iters=30", "solver.check_every=5", "checkpoint.every=10")
-    original = pipeline.Monitor.__call__
-
-    def interrupt_at_15(self, it, x, info):
-        original(self, it, x, info)
-        if it == 15:
-            os.kill(os.getpid(), signal.SIGINT)  # caught by the run's handler: checkpoint, stop
-
-    monkeypatch.setattr(pipeline.Monitor, "__call__", interrupt_at_15)
     run, reference = tmp_path / "run", tmp_path / "reference"
     with pytest.raises(Interrupted, match="at iteration 15"):
-        reconstruct(cfg, run)
-    monkeypatch.setattr(pipeline.Monitor, "__call__", original)
+        reconstruct(cfg, run, watch=interrupt_at(15))  # the run's handler: checkpoint, stop
     resumed = reconstruct(cfg, run, resume=True)
     straight = reconstruct(cfg, reference)
     # bit for bit on 2 threads; with 16 threads the CPU kernels' summation order moved the

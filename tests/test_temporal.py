@@ -137,7 +137,7 @@ def slsqp_reference(frames: list[FrameProblem], w2: float, w1: float) -> np.ndar
             "fun": lambda v: np.concatenate([v[n:] - (v[jj] - v[ii]), v[n:] + (v[jj] - v[ii])])}
     v0 = np.concatenate([np.full(n, 0.5), np.ones(k)])
     res = minimize(fun, v0, jac=True, method="SLSQP", constraints=[cons],
-                   bounds=[(0, None)] * (n + k), options={"maxiter": 2000, "ftol": 1e-14})
+                   bounds=[(0, None)] * (n + k), options={"maxiter": 2000, "ftol": 1e-12})
     assert res.success, res.message
     return res.x[:n]
 

@@ -82,6 +82,7 @@ class SolveResult:
     objective: float
     converged: bool
     history: list[dict] = field(default_factory=list)
+    stopped: str | None = None  # why a guard stopped the solve early (x: its last good iterate)
 
 
 Callback = Callable[[int, torch.Tensor, dict], None]

@@ -1,0 +1,127 @@
+"""The Python API: a notebook reconstructs the synthetic scene without Hydra and gets what
+``python train.py`` gets, bit for bit; a CLI run folder loads back and re-scores to its own
+metrics; the typed options are the CLI's defaults; the core imports neither Hydra nor
+OmegaConf; photometry refits are checkpointed and resumed like the main solve."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import flamerecon as fr
+from flamerecon.errors import ConfigError, Interrupted
+from flamerecon.pipeline import options_from_config, reconstruct
+from tests.helpers import REPO, CliRun, interrupt_at, repo_env, tiny_cfg, tiny_config
+
+#: the settings of tests.helpers.TINY, written as a notebook would write them.
+NOTEBOOK_SCENE = {"width": 48, "height": 36, "n_cameras": 5, "phantom_resolution": 32}
+NOTEBOOK_OPTIONS = fr.ReconstructionOptions(
+    grid=fr.GridOptions(resolution=16),
+    solver=fr.SolverOptions(params={"max_iters": 30, "max_seconds": None, "tol": 1.0e-4, "check_every": 10}),
+    device="cpu", threads=1,  # one thread: the same summation order in both processes
+)
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    """``python train.py`` on the tiny settings (TINY), as a user types it."""
+    run = tmp_path_factory.mktemp("cli") / "run"
+    done = CliRun(run, "threads=1").result()
+    assert done.returncode == 0, done.stderr
+    return run
+
+
+def test_the_typed_defaults_are_the_clis():
+    assert options_from_config(tiny_config("threads=1")) == NOTEBOOK_OPTIONS
+    composed = options_from_config(tiny_config("grid.resolution=64", "solver.max_iters=500", "device=auto"))
+    assert composed == fr.ReconstructionOptions()
+
+
+@pytest.mark.e2e
+def test_a_notebook_gets_the_density_of_train_py_bit_for_bit(cli_run):
+    scene = fr.load_scene("synthetic", **NOTEBOOK_SCENE)
+    rec = fr.reconstruct(scene, NOTEBOOK_OPTIONS)
+    with np.load(cli_run / "density.npz") as saved:
+        np.testing.assert_array_equal(rec.density.numpy(), saved["density"])
+    metrics = json.loads((cli_run / "metrics.json").read_text())
+    scores = fr.score(rec)
+    for part in ("heldout", "train"):
+        for view, values in metrics[part].items():
+            assert scores[part][view]["psnr"] == values["psnr"]
+    assert rec.fit.result.iterations == metrics["solver"]["iterations"]
+
+
+@pytest.mark.e2e
+def test_load_run_rescores_a_cli_run_to_its_metrics(cli_run):
+    run = fr.load_run(cli_run, device="cpu")
+    assert run.options == NOTEBOOK_OPTIONS and run.scene.views[run.holdout[0]] == "cam04"
+    written, again = run.metrics, fr.score(run)
+    for part in ("heldout", "train"):
+        assert again[part].keys() == written[part].keys()
+        for view, values in written[part].items():
+            for key, value in values.items():
+                assert again[part][view][key] == pytest.approx(value, rel=1e-6, abs=1e-9), (part, view, key)
+    assert again["volume"] == pytest.approx(written["volume"])
+    images = fr.render(run.density, run.grid, run.scene.cameras)
+    assert images.shape == (5, 3, 36, 48) and float(images.min()) >= 0
+
+
+def test_the_core_imports_neither_hydra_nor_omegaconf():
+    code = ("import sys, flamerecon as fr; "
+            "s = fr.load_scene('synthetic', width=24, height=18, n_cameras=3, phantom_resolution=16); "
+            "o = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device='cpu', "
+            "solver=fr.SolverOptions(params={'max_iters': 5})); "
+            "fr.reconstruct(s, o); "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=repo_env(), capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
+def test_the_api_names_are_all_exported():
+    assert fr.__all__ == sorted(fr.API)
+    for name in fr.__all__:
+        assert getattr(fr, name) is not None
+
+
+@pytest.mark.parametrize("config, message", [
+    ({"grid": {"resolutoin": 8}}, r"grid: unknown key 'resolutoin'; valid keys are \['resolution'"),
+    ({"sovler": {}}, r"options: unknown key 'sovler'"),
+    ({"solver": {"l1_rel": 0.1}}, r"solver.name: missing"),
+    ({"debias": {"method": "mean"}}, r"debias.method: unknown value 'mean'"),
+])
+def test_bad_options_name_the_key(config, message):
+    with pytest.raises(ConfigError, match=message):
+        fr.ReconstructionOptions.from_dict(config)
+
+
+def test_a_misspelt_solver_option_is_refused_by_name():
+    scene = fr.load_scene("synthetic", width=24, height=18, n_cameras=3, phantom_resolution=16)
+    options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device="cpu",
+                                       solver=fr.SolverOptions(params={"max_iter": 5}))
+    with pytest.raises(ConfigError, match=r"solver.max_iter: unknown option of solver 'fista'"):
+        fr.reconstruct(scene, options)
+
+
+REFIT = ["photometry.fit_gain=true", "photometry.rounds=2", "solver.max_iters=30", "solver.check_every=5",
+         "solver.tol=0", "checkpoint.every=10"]
+
+
+@pytest.mark.slow
+def test_an_interrupted_photometry_refit_resumes_to_the_uninterrupted_result(tmp_path):
+    reference, run = tmp_path / "reference", tmp_path / "run"
+    straight = reconstruct(tiny_cfg(*REFIT), reference)
+    with pytest.raises(Interrupted, match=r"SIGINT received at iteration 15 \(photometry refit 2\)"):
+        reconstruct(tiny_cfg(*REFIT), run, watch=interrupt_at(15, round=2))
+    assert (run / "checkpoint.pt").is_file() and not (run / "density.npz").exists()
+    resumed = reconstruct(tiny_cfg(*REFIT), run, resume=True)
+    with np.load(run / "density.npz") as a, np.load(reference / "density.npz") as b:
+        np.testing.assert_allclose(a["density"], b["density"], rtol=1e-5, atol=1e-7)
+    assert resumed["solver"]["photometry"] == straight["solver"]["photometry"] == {
+        "rounds": 2, "iterations": [30, 30]}
+    assert not (run / "checkpoint.pt").exists()
