@@ -119,7 +119,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
             timing["solve"] -= hook.monitor_seconds
         timing["monitoring"] = hook.monitor_seconds
         clock = time.perf_counter()
-        metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.monitor, hook.stop)
+        metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.stop)
         timing["outputs"] = time.perf_counter() - clock
     finally:
         writer.close()

@@ -56,8 +56,11 @@ class Stage:
 
     @property
     def tag_root(self) -> str:
-        """TensorBoard tag prefix: ``""`` for the final grid, ``level<i>/`` for a coarse one."""
-        return "" if self.final else f"level{self.level}/"
+        """TensorBoard tag prefix: ``""`` for the final grid's solve, ``refit<r>/`` for its
+        photometry refit r, ``level<i>/`` for coarse level i."""
+        if not self.final:
+            return f"level{self.level}/"
+        return f"refit{self.round}/" if self.round else ""
 
     def __str__(self) -> str:
         where = "the final grid" if self.final else f"coarse level grid.levels[{self.level}]"

@@ -26,6 +26,7 @@ from .grid import VoxelGrid
 from .guard import StopSolve
 from .options import ReconstructionOptions
 from .reconstruction import Reconstruction, mean_of
+from .run_hook import log_pictures
 from .scenes import Scene, load_scene
 from .summary import flat_metrics
 from .tb_logging import RunWriter
@@ -116,10 +117,9 @@ def solver_record(rec: Reconstruction, stopped: StopSolve | None) -> dict:
 
 
 def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, writer: RunWriter,
-                  monitor, stopped: StopSolve | None = None) -> dict:
+                  stopped: StopSolve | None = None) -> dict:
     """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries of
-    ``rec`` (``monitor``: the final solve's, which logs the final renders); returns the
-    metrics."""
+    ``rec``; returns the metrics."""
     setup, options, scene = rec.setup, rec.options, rec.scene
     volume = rec.density
     info = solver_record(rec, stopped)
@@ -138,7 +138,7 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
     if rec.calibration:
         writer.scalars(0, {k: metrics["calibration"][k] for k in ("train_psnr_before", "train_psnr_after")},
                        "calibration")
-    monitor.log_pictures(rec.fit.result.iterations, volume, held_imgs)  # the final renders, not again
+    log_pictures(writer, setup, rec.fit.result.iterations, volume, held_imgs)  # the final renders, not again
     writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
                                                   setup.grid.bbox_max), 0, "HWC")
     solver = options.solver

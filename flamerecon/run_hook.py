@@ -78,18 +78,22 @@ class Monitor:
         self.log_pictures(it, vol, render_scene_views(vol, s.grid, s.scene, s.holdout, s.step))
 
     def log_pictures(self, it: int, vol: torch.Tensor, imgs: torch.Tensor) -> None:
-        """Held-out PSNR, held-out renders imgs (V, C, H, W) beside the captured views, and the
-        top view of vol (C, nz, ny, nx), at step ``it``."""
-        s, root = self.setup, self.tag_root
-        scores = score_views(imgs, s.scene, s.holdout)
-        self.writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix=f"{root}eval")
-        for img, v in zip(imgs, s.holdout):
-            self.writer.image(f"{root}heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
-        self.writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max),
-                          it, "HWC")
+        log_pictures(self.writer, self.setup, it, vol, imgs, self.tag_root)
 
     def close(self) -> None:
         self.bar.close()
+
+
+def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, imgs: torch.Tensor,
+                 root: str = "") -> None:
+    """Held-out PSNR, held-out renders imgs (V, C, H, W) beside the captured views, and the top
+    view of vol (C, nz, ny, nx), at step ``it``, under the tag prefix ``root``."""
+    s = setup
+    scores = score_views(imgs, s.scene, s.holdout)
+    writer.scalars(it, {"heldout_psnr": mean_of(scores, "psnr")}, prefix=f"{root}eval")
+    for img, v in zip(imgs, s.holdout):
+        writer.image(f"{root}heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
+    writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
 
 
 @dataclass(frozen=True)
@@ -114,15 +118,14 @@ class RunHook(SolveHook):
 
     A coarse level that diverges raises :class:`~flamerecon.errors.SolveDiverged` (nothing is
     written); on the final grid the last good iterate comes back with ``stopped`` set.
-    :attr:`monitor` is the last solve's monitor, :attr:`monitor_seconds` the monitors' time on
-    the final grid, :attr:`stop` the divergence stop.
+    :attr:`monitor_seconds` is the monitors' time on the final grid, :attr:`stop` the
+    divergence stop.
     """
 
     def __init__(self, run_dir: str | Path, writer: RunWriter, options: RunOptions,
                  plan: list[list[int]], checkpoint: dict | None = None, watch: Watch | None = None):
         self.run_dir, self.writer, self.options = Path(run_dir), writer, options
         self.plan, self.checkpoint, self.watch = plan, checkpoint, watch
-        self.monitor: Monitor | None = None
         self.monitor_seconds = 0.0
         self.stop: StopSolve | None = None
 
@@ -156,7 +159,6 @@ class RunHook(SolveHook):
             self.checkpoint = None  # resumed: the later stages start afresh
         if stage.final:
             self.monitor_seconds += monitor.seconds
-        self.monitor = monitor
         if stopped is not None:
             if not stage.final:
                 raise SolveDiverged(
@@ -199,7 +201,7 @@ class RunHook(SolveHook):
                 except StopSolve as stop:
                     if stop.reason == "interrupted":
                         where = "" if stage.final else f" of {stage} ({cells_of(setup.grid.resolution)} cells)"
-                        where += f" (photometry refit {stage.round})" if stage.round and stage.final else ""
+                        where += f" (photometry refit {stage.round})" if stage.round else ""
                         raise Interrupted(
                             f"{self.run_dir}: {stop.detail} at iteration {stop.iteration}{where}; the state is "
                             f"saved in {CHECKPOINT_FILE}; continue with: python train.py resume={self.run_dir}"

@@ -77,7 +77,7 @@ def test_the_core_imports_neither_hydra_nor_omegaconf():
             "solver=fr.SolverOptions(params={'max_iters': 5})); "
             "fr.reconstruct(s, o); "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))")
-    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=repo_env(), capture_output=True,
+    done = subprocess.run([sys.executable, "-c", code], check=False, cwd=REPO, env=repo_env(), capture_output=True,
                           text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
@@ -117,7 +117,7 @@ def test_an_interrupted_photometry_refit_resumes_to_the_uninterrupted_result(tmp
     reference, run = tmp_path / "reference", tmp_path / "run"
     straight = reconstruct(tiny_cfg(*REFIT), reference)
     with pytest.raises(Interrupted, match=r"SIGINT received at iteration 15 \(photometry refit 2\)"):
-        reconstruct(tiny_cfg(*REFIT), run, watch=interrupt_at(15, round=2))
+        reconstruct(tiny_cfg(*REFIT), run, watch=interrupt_at(15, "refit2/"))
     assert (run / "checkpoint.pt").is_file() and not (run / "density.npz").exists()
     resumed = reconstruct(tiny_cfg(*REFIT), run, resume=True)
     with np.load(run / "density.npz") as a, np.load(reference / "density.npz") as b:

@@ -6,14 +6,14 @@ import os
 import signal
 
 
-def interrupt_at(iteration: int, tag_root: str = "", round: int = 0):
+def interrupt_at(iteration: int, tag_root: str = ""):
     """A ``watch`` for :func:`flamerecon.pipeline.reconstruct` that sends this process a SIGINT
     at solver check ``iteration`` of the solve logged under ``tag_root`` (``""``: the final
-    grid, ``level<i>/``: coarse level i) in photometry refit ``round`` (0: the solve itself);
-    the run's handler then checkpoints and stops."""
+    grid, ``level<i>/``: coarse level i, ``refit<r>/``: photometry refit r); the run's handler
+    then checkpoints and stops."""
 
     def watch(stage, it, x, info) -> None:
-        if stage.tag_root == tag_root and stage.round == round and it == iteration:
+        if stage.tag_root == tag_root and it == iteration:
             os.kill(os.getpid(), signal.SIGINT)
 
     return watch
