@@ -70,6 +70,11 @@ def test_the_wheel_installs_and_its_command_runs_outside_the_checkout(tmp_path):
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["solver"]["iterations"] == 10 and (run / "density.npz").is_file()
     assert (run / "train.log").is_file()  # the job keeps the name it had as python train.py
+    api = subprocess.run(  # the installed API reads the CLI's run folder back to its metrics
+        [str(bin_dir / "python"), "-c", (f"import flamerecon as fr; r = fr.load_run({str(run)!r}, 'cpu'); "
+                                         "print(fr.score(r)['heldout']['cam04']['psnr'])")],
+        check=True, capture_output=True, text=True, cwd=tmp_path, timeout=300).stdout
+    assert float(api) == pytest.approx(metrics["heldout"]["cam04"]["psnr"], rel=1e-6)
 
 
 def test_a_relative_scene_root_resolves_against_where_the_command_started(tmp_path, monkeypatch):
