@@ -104,6 +104,7 @@ class Photometry:
     gain: torch.Tensor
     offset: torch.Tensor
     iterations: list[int]  # of each re-solve
+    solve_iterations: int = 0  # of the solve before the first refit
 
     def per_view(self, setup: Setup) -> dict[str, tuple[float, float]]:
         """{view name: (gain, offset)} for every view; held-out views get (1, 0)."""
@@ -248,6 +249,7 @@ def fit_photometry(options: ReconstructionOptions, setup: Setup, problem: Proble
     T = len(setup.train)
     first = 1 if resumed is None else resumed_round
     iterations = [] if resumed is None else list(resumed["iterations"])
+    solved = result.iterations if resumed is None else int(resumed["solve_iterations"])
     seconds = result.seconds if resumed is None else float(resumed["seconds"])
     gain = offset = None
     if resumed is not None:
@@ -265,7 +267,8 @@ def fit_photometry(options: ReconstructionOptions, setup: Setup, problem: Proble
         b = (setup.pixels - offset[setup.row_view, None]) / gain[setup.row_view, None]
         again = Problem(setup.operator, b, problem.l1, grid_shape=problem.grid_shape,
                         voxel_index=problem.voxel_index)
-        state = {"gain": gain.cpu(), "offset": offset.cpu(), "iterations": list(iterations), "seconds": seconds}
+        state = {"gain": gain.cpu(), "offset": offset.cpu(), "iterations": list(iterations), "seconds": seconds,
+                 "solve_iterations": solved}
         x0 = None if result is None else result.x
         result = hook.solve(replace(stage, round=r), setup, again, solver, x0, {**carry, "photometry": state})
         iterations.append(result.iterations)
@@ -273,7 +276,7 @@ def fit_photometry(options: ReconstructionOptions, setup: Setup, problem: Proble
         if result.stopped is not None:
             break
     result.seconds = seconds
-    return result, Photometry(gain.cpu(), offset.cpu(), iterations)
+    return result, Photometry(gain.cpu(), offset.cpu(), iterations, solved)
 
 
 def level_options(options: ReconstructionOptions, max_iters: int | None, cell_ratio: float) -> ReconstructionOptions:

@@ -95,11 +95,15 @@ def write_scores(run_dir: Path, metrics: dict, held_imgs: torch.Tensor, scene: S
 
 
 def solver_record(rec: Reconstruction, stopped: StopSolve | None) -> dict:
-    """metrics.json's ``solver``: name, weights, iterations, time, status and the records of
-    the grid levels, weight selection, photometry and debiasing."""
+    """metrics.json's ``solver``: name, weights, iterations and time (the solve's and its
+    photometry refits' together), status and the records of the grid levels, weight
+    selection, photometry (iterations per refit) and debiasing."""
     fit, result = rec.fit, rec.fit.result
+    iterations = result.iterations
+    if fit.photometry is not None:
+        iterations = fit.photometry.solve_iterations + sum(fit.photometry.iterations)
     info = {
-        "name": fit.options.solver.name, "l1": fit.l1, "iterations": result.iterations,
+        "name": fit.options.solver.name, "l1": fit.l1, "iterations": iterations,
         "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
         "status": "finished" if stopped is None else "diverged", "device": str(result.x.device),
     }

@@ -124,4 +124,6 @@ def test_an_interrupted_photometry_refit_resumes_to_the_uninterrupted_result(tmp
         np.testing.assert_allclose(a["density"], b["density"], rtol=1e-5, atol=1e-7)
     assert resumed["solver"]["photometry"] == straight["solver"]["photometry"] == {
         "rounds": 2, "iterations": [30, 30]}
+    assert resumed["solver"]["iterations"] == straight["solver"]["iterations"] == 90  # solve + 2 refits
+    assert resumed["solver"]["seconds"] > 0
     assert not (run / "checkpoint.pt").exists()
