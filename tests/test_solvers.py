@@ -91,6 +91,15 @@ def test_sart_decreases_residual_monotonically_on_consistent_system():
     assert plain[-1] < 1e-2 * plain[0]
 
 
+def test_sart_stops_on_its_tolerance_not_at_its_first_check():
+    A, _, _ = tiny_problem(seed=4, N=90, M=60, C=2)
+    b = A @ np.random.default_rng(4).random((60, 2)).astype(np.float32)
+    problem = Problem(csr(A), torch.tensor(b))
+    tight = make_solver("sart", tol=1e-6, max_iters=400, check_every=10).solve(problem)
+    loose = make_solver("sart", tol=1e-1, max_iters=400, check_every=10).solve(problem)
+    assert 10 < loose.iterations < tight.iterations  # the first check has nothing to compare
+
+
 def test_make_solver_lists_choices_for_unknown_name():
     with pytest.raises(ValueError, match="unknown solver 'nope'"):
         make_solver("nope")

@@ -9,6 +9,8 @@ whose Lipschitz constant is <= 1 for nonnegative A).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .base import Problem, Solver, register
@@ -58,8 +60,8 @@ class Sart(Solver):
         l1 = self.problem.l1 * float(self.x.double().abs().sum())
         return {"objective": data + l1, "data": data, "l1": l1, "weighted_residual": weighted}
 
-    def reached(self, info: dict) -> bool:
-        return self.last - info["weighted_residual"] <= self.tol * self.last
+    def reached(self, info: dict) -> bool:  # not at the first check: there is nothing to compare yet
+        return math.isfinite(self.last) and self.last - info["weighted_residual"] <= self.tol * self.last
 
     def after_check(self, info: dict) -> None:
         self.last = info["weighted_residual"]
