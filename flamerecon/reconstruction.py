@@ -381,12 +381,13 @@ def mean_of(per_view: dict[str, dict[str, float]], key: str) -> float:
 
 
 def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook: SolveHook | None = None,
-                device: torch.device | str | None = None) -> Reconstruction:
-    """Reconstruct ``scene``: camera refinement (``calibration``), the warm start (``init``),
-    the coarse levels (``grid.levels``), then :func:`fit` on the final grid; every solve
-    through ``hook`` (default: solve only). Sets torch's seed and thread count as the options
-    say. Returns the :class:`Reconstruction` (with ``stopped`` set when the hook stopped a
-    solve early: the later steps are then skipped)."""
+                device: torch.device | str | None = None, init: torch.Tensor | None = None) -> Reconstruction:
+    """Reconstruct ``scene``: camera refinement (``calibration``), the warm start (``init``, a
+    density (C, nz', ny', nx') on the grid's box such as the previous frame's, else
+    ``options.init``'s run), the coarse levels (``grid.levels``), then :func:`fit` on the
+    final grid; every solve through ``hook`` (default: solve only). Sets torch's seed and
+    thread count as the options say. Returns the :class:`Reconstruction` (with ``stopped``
+    set when the hook stopped a solve early: the later steps are then skipped)."""
     options = options or ReconstructionOptions()
     hook = hook or SolveHook()
     check_solver_name(options.solver.name)
@@ -405,8 +406,8 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     resumed = hook.resume()
     first = 0 if resumed is None else min(resumed.level, len(grids))
     records: list[dict] = [] if resumed is None else list(resumed.carry.get("level_records", []))
-    volume = None
-    if resumed is None and options.init:
+    volume = None if resumed is not None else init
+    if volume is None and resumed is None and options.init:
         volume = init_volume(options.init, grids[0] if grids else fine, int(scene.images.shape[1]))
     clock = time.perf_counter()
     volume = coarse_levels(scene, options, device, volume, first, hook, records)

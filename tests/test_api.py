@@ -127,3 +127,14 @@ def test_an_interrupted_photometry_refit_resumes_to_the_uninterrupted_result(tmp
     assert resumed["solver"]["iterations"] == straight["solver"]["iterations"] == 90  # solve + 2 refits
     assert resumed["solver"]["seconds"] > 0
     assert not (run / "checkpoint.pt").exists()
+
+
+def test_a_density_warm_starts_the_next_reconstruction():
+    scene = fr.load_scene("synthetic", width=24, height=18, n_cameras=3, phantom_resolution=16)
+    options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device="cpu",
+                                       solver=fr.SolverOptions().with_values(max_iters=60, tol=0))
+    done = fr.reconstruct(scene, options)
+    few = options.replace(solver=options.solver.with_values(max_iters=5))
+    cold, warm = fr.reconstruct(scene, few), fr.reconstruct(scene, few, init=done.density)
+    assert warm.fit.result.objective < cold.fit.result.objective
+    assert warm.fit.result.objective <= done.fit.result.objective * (1 + 1e-6)
