@@ -15,6 +15,7 @@ from typing import Any
 
 from .debias import DebiasOptions
 from .errors import ConfigError
+from .options_check import check_options
 from .refine_cameras import RefineOptions
 from .weight_selection import SelectionOptions
 
@@ -187,9 +188,32 @@ class ReconstructionOptions:
                 values[key] = node
         return cls(**values)
 
+    def as_dict(self) -> dict:
+        """The options as a plain nested dict shaped like ``conf/train.yaml`` (tuples as lists)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out = {k: v.as_dict() if isinstance(v, SolverOptions) else
+               dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in out.items()}
+        return plain(out)
+
+    def check(self) -> ReconstructionOptions:
+        """These options, after every value is checked against the CLI's rules
+        (:func:`~flamerecon.options_check.check_options`: ranges, types, choices); a
+        :class:`~flamerecon.errors.ConfigError` names the first that breaks its rule."""
+        check_options(self.as_dict())
+        return self
+
     def replace(self, **changes) -> ReconstructionOptions:
         """A copy with some fields replaced (``dataclasses.replace``)."""
         return dataclasses.replace(self, **changes)
+
+
+def plain(value):
+    """``value`` with tuples as lists and mappings as dicts, all the way down."""
+    if isinstance(value, Mapping):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    return value
 
 
 def section(name: str, cls: type, node: Mapping):

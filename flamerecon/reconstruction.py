@@ -388,7 +388,7 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     final grid; every solve through ``hook`` (default: solve only). Sets torch's seed and
     thread count as the options say. Returns the :class:`Reconstruction` (with ``stopped``
     set when the hook stopped a solve early: the later steps are then skipped)."""
-    options = options or ReconstructionOptions()
+    options = (options or ReconstructionOptions()).check()
     hook = hook or SolveHook()
     check_solver_name(options.solver.name)
     torch.manual_seed(int(options.seed))

@@ -138,3 +138,14 @@ def test_a_density_warm_starts_the_next_reconstruction():
     cold, warm = fr.reconstruct(scene, few), fr.reconstruct(scene, few, init=done.density)
     assert warm.fit.result.objective < cold.fit.result.objective
     assert warm.fit.result.objective <= done.fit.result.objective * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("options, message", [
+    (fr.ReconstructionOptions(grid=fr.GridOptions(resolution=-3)), r"grid.resolution: got -3"),
+    (fr.ReconstructionOptions(projector=fr.ProjectorOptions(step=0)), r"projector.step: got 0"),
+    (fr.ReconstructionOptions(solver=fr.SolverOptions(l1_rel=-1.0)), r"solver.l1_rel: got -1.0"),
+])
+def test_the_api_checks_values_by_the_clis_rules(options, message):
+    scene = fr.load_scene("synthetic", width=24, height=18, n_cameras=3, phantom_resolution=16)
+    with pytest.raises(ConfigError, match=message):
+        fr.reconstruct(scene, options)
