@@ -11,6 +11,7 @@ import sys
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
 
 import flamerecon as fr
 from flamerecon.errors import ConfigError, Interrupted
@@ -21,7 +22,8 @@ from tests.helpers import REPO, CliRun, interrupt_at, repo_env, tiny_cfg, tiny_c
 NOTEBOOK_SCENE = {"width": 48, "height": 36, "n_cameras": 5, "phantom_resolution": 32}
 NOTEBOOK_OPTIONS = fr.ReconstructionOptions(
     grid=fr.GridOptions(resolution=16),
-    solver=fr.SolverOptions(params={"max_iters": 30, "max_seconds": None, "tol": 1.0e-4, "check_every": 10}),
+    solver=fr.SolverOptions("fista", None, 1.0e-3, {"max_iters": 30, "max_seconds": None, "tol": 1.0e-4,
+                                                    "check_every": 10}),
     device="cpu", threads=1,  # one thread: the same summation order in both processes
 )
 
@@ -37,8 +39,10 @@ def cli_run(tmp_path_factory):
 
 def test_the_typed_defaults_are_the_clis():
     assert options_from_config(tiny_config("threads=1")) == NOTEBOOK_OPTIONS
-    composed = options_from_config(tiny_config("grid.resolution=64", "solver.max_iters=500", "device=auto"))
-    assert composed == fr.ReconstructionOptions()
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        default = compose(config_name="train")  # python train.py, nothing on the command line
+    assert options_from_config(default) == fr.ReconstructionOptions()
+    assert fr.ReconstructionOptions().solver.name == "fista_smooth"
 
 
 @pytest.mark.e2e
@@ -104,7 +108,7 @@ def test_a_misspelt_solver_option_is_refused_by_name():
     scene = fr.load_scene("synthetic", width=24, height=18, n_cameras=3, phantom_resolution=16)
     options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device="cpu",
                                        solver=fr.SolverOptions(params={"max_iter": 5}))
-    with pytest.raises(ConfigError, match=r"solver.max_iter: unknown option of solver 'fista'"):
+    with pytest.raises(ConfigError, match=r"solver.max_iter: unknown option of solver 'fista_smooth'"):
         fr.reconstruct(scene, options)
 
 
