@@ -445,12 +445,14 @@ class MatrixFreeOperator:
 def render_image(
     volume: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, step: float = 0.5
 ) -> torch.Tensor:
-    """Render every pixel of every camera: volume (C, nz, ny, nx) -> images (B, C, H, W)."""
+    """Render every pixel of every camera: volume (C, nz, ny, nx) -> images (B, C, H, W).
+    Only the segments inside the box of the volume's nonzeros are marched (the others add 0)."""
     B = cams.batch_size
     H, W = int(cams.height[0]), int(cams.width[0])
     rays, _ = camera_rays(cams)
     with torch.no_grad():
-        pix = integrate_dense(volume, grid, rays.to(volume.device), step)
+        box = support_box(grid, volume.abs().sum(0).reshape(-1).nonzero().squeeze(1))
+        pix = integrate_dense(volume, grid, rays.to(volume.device), step, box)
     return pix.T.reshape(volume.shape[0], B, H, W).transpose(0, 1).contiguous()
 
 
