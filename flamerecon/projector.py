@@ -239,7 +239,8 @@ def trilinear_weights(
     dx`` is the corner at offset (dx, dy, dz) from the sample's lower corner."""
     u = grid.world_to_index(points).T.contiguous()
     i0 = torch.floor(u)
-    return _corners(u, i0, i0.long(), length, grid)
+    idx, w = _corners(u, i0, i0.long(), length, grid)
+    return idx.long(), w
 
 
 #: corner offsets (8, 3) as (dx, dy, dz) in the slot order of :func:`trilinear_weights`
@@ -268,7 +269,10 @@ def _corners(
     u: torch.Tensor, i0f: torch.Tensor, i0: torch.Tensor, length: torch.Tensor, grid: VoxelGrid
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`trilinear_weights` from continuous voxel coordinates ``u`` (3, P), axis-major,
-    their floor ``i0f`` (3, P) and its ``i0`` as long: indices (P, 8) and weights (P, 8)."""
+    their floor ``i0f`` (3, P) and its ``i0`` as integers: indices (P, 8), int32 when the grid
+    has fewer than 2^31 voxels (int64 products measured 3x slower), and weights (P, 8)."""
+    if grid.num_voxels < 2**31:
+        i0 = i0.to(torch.int32)
     f = u - i0f
     frac, index = [], []
     for axis, n in enumerate(grid.resolution):  # per axis: corner 0 and corner 1
@@ -337,7 +341,7 @@ def assemble(
     for sl, smp in packed_samples(rays, grid, step, box, ASSEMBLY_CHUNK_SAMPLES):
         u = grid.world_to_index(smp.points).T.contiguous()  # (3, P)
         i0f = torch.floor(u)
-        i0 = i0f.long()
+        i0 = i0f.to(torch.int32 if grid.num_voxels < 2**31 else torch.long)
         # keep only samples whose trilinear cell touches the hull (most of the support box
         # does not): the 8-corner work below is then done for samples that contribute
         cx, cy, cz = ((i0[a] + 1).clamp_(0, int(top[a])) for a in range(3))
