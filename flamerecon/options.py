@@ -87,7 +87,7 @@ class SolverOptions:
     l1: float | None = None
     l1_rel: float | None = 1.0e-3
     params: Mapping[str, Any] = field(default_factory=lambda: {
-        "smooth": 0.01, "max_iters": 500, "max_seconds": None, "tol": 1.0e-4, "check_every": 10})
+        "smooth": 0.01, "max_iters": 200, "max_seconds": None, "tol": 1.0e-4, "check_every": 10})
 
     @classmethod
     def from_dict(cls, node: Mapping) -> SolverOptions:
