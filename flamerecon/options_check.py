@@ -143,6 +143,16 @@ def candidate_table(value) -> str | None:
 
 
 #: dotted key -> rule, for every option of conf/ (train.yaml and each group).
+#: the silhouette options (``silhouette:``, and ``scene.silhouette:`` for a scene's box estimate).
+SILHOUETTE: dict[str, Rule] = {
+    "method": Rule(choice("otsu", "threshold")),
+    "threshold": Rule(number(0), null=True),
+    "speck_px": Rule(integer(0)),
+    "dilate_px": Rule(integer(0)),
+    "blur_px": Rule(number(0)),
+    "close_px": Rule(integer(0)),
+}
+
 RULES: dict[str, Rule] = {
     # train.yaml
     "holdout": Rule(_views, null=True),
@@ -184,12 +194,7 @@ RULES: dict[str, Rule] = {
     "select.candidates": Rule(candidate_table),
     "select.folds": Rule(integer(2)),
     "select.iterations": Rule(integer(1), null=True),
-    "silhouette.method": Rule(choice("otsu", "threshold")),
-    "silhouette.threshold": Rule(number(0), null=True),
-    "silhouette.speck_px": Rule(integer(0)),
-    "silhouette.dilate_px": Rule(integer(0)),
-    "silhouette.blur_px": Rule(number(0)),
-    "silhouette.close_px": Rule(integer(0)),
+    **{f"silhouette.{k}": rule for k, rule in SILHOUETTE.items()},
     "hull.margin_voxels": Rule(integer(0)),
     "photometry.fit_gain": Rule(boolean),
     "photometry.fit_offset": Rule(boolean),
@@ -233,12 +238,7 @@ RULES: dict[str, Rule] = {
     "scene.black_level": Rule(number(0, 1, hi_open=True)),
     "scene.bbox": Rule(_box, null=True),
     "scene.holdout": Rule(_views, null=True),
-    "scene.silhouette.method": Rule(choice("otsu", "threshold")),
-    "scene.silhouette.threshold": Rule(number(0), null=True),
-    "scene.silhouette.dilate_px": Rule(integer(0)),
-    "scene.silhouette.speck_px": Rule(integer(0)),
-    "scene.silhouette.blur_px": Rule(number(0)),
-    "scene.silhouette.close_px": Rule(integer(0)),
+    **{f"scene.silhouette.{k}": rule for k, rule in SILHOUETTE.items()},  # the box estimate's
     "scene.n_cameras": Rule(integer(2)),
     "scene.width": Rule(integer(1)),
     "scene.height": Rule(integer(1)),

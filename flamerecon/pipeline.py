@@ -57,11 +57,12 @@ def refine_options(cfg: DictConfig) -> RefineOptions:
 
 
 def run_options(cfg: DictConfig) -> RunOptions:
-    """The ``log:`` and ``checkpoint:`` nodes as :class:`~flamerecon.run_hook.RunOptions`."""
+    """The ``log:`` and ``checkpoint:`` nodes as :class:`~flamerecon.run_hook.RunOptions` (an
+    absent key keeps its default there)."""
     log, ck = cfg.get("log") or {}, cfg.get("checkpoint") or {}
-    share = log.get("eval_share", 0.1)
-    return RunOptions(int(log.get("eval_every", 50)), None if share is None else float(share),
-                      int(ck.get("every", 0)), float(ck.get("divergence_factor", 0.0)))
+    where = {"eval_every": (log, "eval_every"), "eval_share": (log, "eval_share"),
+             "checkpoint_every": (ck, "every"), "divergence_factor": (ck, "divergence_factor")}
+    return RunOptions(**{field: node[key] for field, (node, key) in where.items() if key in node})
 
 
 def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None) -> dict:

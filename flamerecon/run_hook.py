@@ -128,35 +128,24 @@ class RunHook(SolveHook):
         self.plan, self.checkpoint, self.watch = plan, checkpoint, watch
         self.monitor_seconds = 0.0
         self.stop: StopSolve | None = None
+        self.point = None if checkpoint is None else resume_point(self.run_dir, checkpoint["meta"], plan)
 
     def resume(self) -> ResumePoint | None:
-        if self.checkpoint is None:
-            return None
-        meta = self.checkpoint["meta"]
-        # a checkpoint without "level" predates grid.levels: it is the final grid's
-        level = int(meta.get("level", len(self.plan)))
-        if meta.get("levels", self.plan) != self.plan:
-            raise ResumeError(
-                f"{self.run_dir / CHECKPOINT_FILE}: field 'levels' is {meta['levels']} but the run's config "
-                f"now gives grid.levels as {self.plan}; resume with the grid.levels it was started with"
-            )
-        carry = {"level_records": list(meta.get("level_records", []))}
-        if "photometry" in meta:
-            carry["photometry"] = meta["photometry"]
-        return ResumePoint(level, int(meta.get("round", 0)), carry)
+        """The stage the checkpoint was written in, until that stage's solve has resumed."""
+        return self.point
 
     def solve(self, stage: Stage, setup: Setup, problem: Problem, solver: Solver,
               x0: torch.Tensor | None, carry: dict) -> SolveResult:
         meta = {"solver": solver.name, "shape": list(setup.operator.shape),
                 "channels": int(setup.pixels.shape[1]), "l1": problem.l1, "level": stage.level,
                 "levels": self.plan, "round": stage.round}
-        point = self.resume()
+        point = self.point
         here = self.checkpoint if point is not None and (point.level, point.round) == (stage.level, stage.round) else None
         if here is None and x0 is not None and stage.round == 0:  # where the warm start begins
             self.writer.scalars(0, {"objective": problem.objective(x0)}, prefix=f"{stage.tag_root}solve")
         result, stopped, monitor = self.guarded(stage, setup, problem, solver, meta, carry, x0, here)
         if here is not None:
-            self.checkpoint = None  # resumed: the later stages start afresh
+            self.checkpoint = self.point = None  # resumed: the later stages start afresh
         if stage.final:
             self.monitor_seconds += monitor.seconds
         if stopped is not None:
@@ -213,6 +202,21 @@ class RunHook(SolveHook):
         finally:
             monitor.close()
         return result, stopped, monitor
+
+
+def resume_point(run_dir: Path, meta: dict, plan: list[list[int]]) -> ResumePoint:
+    """Where the checkpoint with ``meta`` continues: its stage and the core's carry. Refuses a
+    checkpoint written under other ``grid.levels`` than ``plan``."""
+    if meta.get("levels", plan) != plan:
+        raise ResumeError(
+            f"{run_dir / CHECKPOINT_FILE}: field 'levels' is {meta['levels']} but the run's config "
+            f"now gives grid.levels as {plan}; resume with the grid.levels it was started with"
+        )
+    carry = {"level_records": list(meta.get("level_records", []))}
+    if "photometry" in meta:
+        carry["photometry"] = meta["photometry"]
+    # a checkpoint without "level" predates grid.levels: it is the final grid's
+    return ResumePoint(int(meta.get("level", len(plan))), int(meta.get("round", 0)), carry)
 
 
 def resume_solver(run_dir: Path, ckpt: dict, solver, meta: dict) -> tuple[torch.Tensor, int, float]:
