@@ -9,7 +9,7 @@ layer reads Hydra configs, converting one to :class:`ReconstructionOptions` once
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -208,10 +208,11 @@ class ReconstructionOptions:
 
 
 def plain(value):
-    """``value`` with tuples as lists and mappings as dicts, all the way down."""
+    """``value`` with sequences (tuples, config lists; not strings) as lists and mappings as
+    dicts, all the way down."""
     if isinstance(value, Mapping):
         return {k: plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
         return [plain(v) for v in value]
     return value
 

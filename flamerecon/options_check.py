@@ -184,6 +184,8 @@ RULES: dict[str, Rule] = {
     "calibration.prior_focal": Rule(number(0, lo_open=True)),
     "calibration.prior_principal_px": Rule(number(0, lo_open=True)),
     "calibration.fit_against": Rule(choice("all", "others")),
+    "calibration.resolution": Rule(integer(1), null=True),
+    "calibration.frames": Rule(list_of(integer(0), what="a list of frame indices >= 0")),
     "calibration.seed": Rule(integer(0)),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),

@@ -18,8 +18,13 @@ common focal or principal point change nearly is such a motion too, so it gets t
 mean. A quadratic prior (one-sigma sizes in :class:`RefineOptions`) holds what the views see
 weakly (e.g. a pivot rotation against a principal point shift).
 
+Frames. The cameras of a capture stand still while the flame moves, so one set of corrections
+may be fitted to several frames at once (:class:`CalibrationFrame`, one density each): a frame
+holding little smoke leaves parts of the box unseen, and its corrections there are guesses.
+
 Camera step: Levenberg-Marquardt on the corrections with the density fixed, over each training
-camera's silhouette pixels grown by a background band (at most ``max_rays`` per camera). Its
+camera's silhouette pixels grown by a background band (at most ``max_rays`` per camera, shared
+among the frames). Its
 Jacobian comes from one backward pass per channel through the matrix-free renderer (a pixel
 depends only on its own ray: d pixel / d ray) chained with the forward-mode derivative of the
 rays (kornia ``PinholeCamera.unproject``) with respect to the corrections.
@@ -62,6 +67,12 @@ class RefineOptions:
       camera's own error, so the fit converges in a few rounds), ``all``: to the density of
       every training camera (one solve per round; converges slowly, as that density was
       fitted to the errors); ``others`` needs three training cameras or more;
+    - ``resolution``: the grid of the densities the cameras are fitted to (cells along the
+      box's longest side; None: the reconstruction's). A coarser, smoother density cannot
+      absorb the cameras' errors as a fine one does;
+    - ``frames``: the frames of the capture whose training views the cameras are fitted to
+      (the cameras stand still); empty: the frame reconstructed. Fitted once per capture and
+      options, then read from the cache (:func:`flamerecon.capture_calibration.capture_refinement`);
     - ``seed``: of the pixel subsets.
     """
 
@@ -75,6 +86,8 @@ class RefineOptions:
     prior_focal: float = 0.02
     prior_principal_px: float = 5.0
     fit_against: str = "all"
+    resolution: int | None = None
+    frames: tuple[int, ...] = ()
     seed: int = 0
 
     def __post_init__(self):
@@ -85,6 +98,10 @@ class RefineOptions:
                 raise ValueError(f"calibration.{name}: must be at least 1, got {getattr(self, name)}")
         if self.fit_against not in ("others", "all"):
             raise ValueError(f"calibration.fit_against: unknown '{self.fit_against}'; use 'others' or 'all'")
+        if self.resolution is not None and int(self.resolution) < 1:
+            raise ValueError(f"calibration.resolution: must be at least 1 or null, got {self.resolution}")
+        if any(int(f) < 0 for f in self.frames):
+            raise ValueError(f"calibration.frames: frame numbers must be >= 0, got {list(self.frames)}")
         if int(self.band_px) < 0:
             raise ValueError(f"calibration.band_px: must be >= 0, got {self.band_px}")
         for name in ("prior_rotation_deg", "prior_translation", "prior_focal", "prior_principal_px"):
@@ -104,14 +121,15 @@ class Refinement:
 
     - ``cameras``: every camera of the scene (B), training ones corrected, held-out unchanged;
     - ``corrections``: ``theta`` (T, 9) of the training cameras (see the module docstring);
-    - ``initial_volume``: the density (C, nz, ny, nx) solved with the unrefined cameras;
+    - ``initial_volume``: the density (C, nz, ny, nx) solved with the unrefined cameras (of
+      the first frame fitted; None when the refinement was read from the cache);
     - ``history``: per round: ``rms_before`` / ``rms_after`` (camera-fit residual, image
       units), ``iterations`` and ``rays``.
     """
 
     cameras: PinholeCamera
     corrections: torch.Tensor
-    initial_volume: torch.Tensor
+    initial_volume: torch.Tensor | None
     history: list[dict] = field(default_factory=list)
 
 
@@ -340,16 +358,44 @@ def with_cameras(cameras: PinholeCamera, index: list[int], replaced: PinholeCame
 Solve = Callable[[list[int], PinholeCamera], torch.Tensor]
 
 
-def refine(cameras: PinholeCamera, train: list[int], images: torch.Tensor, masks: torch.Tensor,
-           grid: VoxelGrid, solve: Solve, options: RefineOptions, step: float = 0.5) -> Refinement:
-    """Refine the training cameras ``train`` of ``cameras`` (B) against ``images`` (B, C, H, W)
-    and silhouettes ``masks`` (B, H, W) bool. ``solve(views, cams)`` returns the density
-    (C, nz, ny, nx) on ``grid`` fitted to the scene views ``views`` seen by ``cams``
-    (len(views)). First the density of every unrefined training camera (``initial_volume``),
-    then ``options.rounds`` times: the densities the cameras are fitted to (see
-    ``fit_against``), and one :func:`camera_step`. Held-out cameras are never changed; with
-    ``refine=none`` nothing is fitted."""
-    device = images.device
+@dataclass
+class CalibrationFrame:
+    """One frame of the camera fit: ``images`` (B, C, H, W) and silhouettes ``masks`` (B, H, W)
+    bool of every camera of the scene, and ``solve(views, cams)``: the density (C, nz, ny, nx)
+    fitted to this frame's views ``views`` seen by the cameras ``cams`` (len(views))."""
+
+    images: torch.Tensor
+    masks: torch.Tensor
+    solve: Solve
+
+
+class JointFit:
+    """Several frames' :class:`CameraFit` as one problem: the same cameras and corrections,
+    each frame's rows compared with its own densities; rows stacked frame after frame."""
+
+    def __init__(self, fits: list[CameraFit]):
+        self.fits = fits
+        self.row_camera = torch.cat([f.row_camera for f in fits])
+
+    def residuals(self, theta: torch.Tensor) -> torch.Tensor:
+        return torch.cat([f.residuals(theta) for f in self.fits])
+
+    def jacobian(self, theta: torch.Tensor, active: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+        parts = [f.jacobian(theta, active) for f in self.fits]
+        return torch.cat([r for r, _ in parts]), torch.cat([J for _, J in parts])
+
+
+def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFrame], grid: VoxelGrid,
+           options: RefineOptions, step: float = 0.5) -> Refinement:
+    """Refine the training cameras ``train`` of ``cameras`` (B) against ``frames`` (one or
+    more frames of the capture, see :class:`CalibrationFrame`). First each frame's density
+    with the unrefined cameras (``initial_volume``: the first frame's), then ``options.rounds``
+    times: the densities the cameras are fitted to (see ``fit_against``), one per frame, and
+    one :func:`camera_step` over every frame's pixels (``max_rays`` per camera shared among
+    the frames). Held-out cameras are never changed; with ``refine=none`` nothing is fitted."""
+    if not frames:
+        raise ValueError("refine: no frame to fit the cameras to")
+    device = frames[0].images.device
     base = camera_subset(cameras, train)
     base = PinholeCamera(base.intrinsics.to(device), base.extrinsics.to(device),
                          base.height.to(device), base.width.to(device))
@@ -360,24 +406,28 @@ def refine(cameras: PinholeCamera, train: list[int], images: torch.Tensor, masks
     sizes = prior_sizes(base, pivot, options)
     basis = gauge_basis(base, pivot, sizes, active)
     generator = torch.Generator().manual_seed(int(options.seed))
-    initial = solve(list(train), base)
+    initial = [frame.solve(list(train), base) for frame in frames]
     history = []
     if not active or basis.shape[1] == 0:
-        return Refinement(with_cameras(cameras, train, base), theta, initial, history)
+        return Refinement(with_cameras(cameras, train, base), theta, initial[0], history)
     others = options.fit_against == "others" and T >= 3
+    rays_per_frame = max(1, int(options.max_rays) // len(frames))
     for r in range(options.rounds):
         current = corrected_cameras(base, theta, pivot)
-        if others:
-            rest = [[j for j in range(T) if j != i] for i in range(T)]
-            volumes = [solve([train[j] for j in js], camera_subset(current, js)).detach() for js in rest]
-        else:
-            volumes = [(initial if r == 0 else solve(list(train), current)).detach()] * T
-        index, valid = fit_pixels(masks[train], options.band_px, options.max_rays, generator)
-        fit = CameraFit(volumes, grid, base, pivot, images[train], index, valid, step)
+        fits = []
+        for frame, first in zip(frames, initial):
+            if others:
+                rest = [[j for j in range(T) if j != i] for i in range(T)]
+                volumes = [frame.solve([train[j] for j in js], camera_subset(current, js)).detach() for js in rest]
+            else:
+                volumes = [(first if r == 0 else frame.solve(list(train), current)).detach()] * T
+            index, valid = fit_pixels(frame.masks[train], options.band_px, rays_per_frame, generator)
+            fits.append(CameraFit(volumes, grid, base, pivot, frame.images[train], index, valid, step))
+        fit = fits[0] if len(fits) == 1 else JointFit(fits)
         theta, info = camera_step(fit, theta, sizes, basis, active, options.iterations)
-        history.append({**info, "rays": int(valid.sum())})
+        history.append({**info, "rays": int(sum(int(f.valid.sum()) for f in fits))})
     refined = with_cameras(cameras, train, corrected_cameras(base, theta, pivot))
-    return Refinement(refined, theta.detach(), initial, history)
+    return Refinement(refined, theta.detach(), initial[0], history)
 
 
 def correction_report(cameras: PinholeCamera, refined: PinholeCamera, grid: VoxelGrid,

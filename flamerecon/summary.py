@@ -32,7 +32,8 @@ def summary_table(metrics: dict) -> str:
     rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"))
     c = metrics.get("calibration")
     if c:
-        rows.append((f"calibration ({c['refine']})", (
+        fitted = f", fitted to frames {c['frames']}" if c.get("frames") else ""
+        rows.append((f"calibration ({c['refine']}{fitted})", (
             f"training {c['train_psnr_before']:.2f} -> {c['train_psnr_after']:.2f} dB, "
             f"held-out before refinement {c['heldout_psnr_before']:.2f} dB")))
         rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "

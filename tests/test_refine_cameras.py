@@ -20,6 +20,7 @@ from flamerecon.metrics import resample_to
 from flamerecon.pipeline import evaluate, reconstruct, refine_options, summary_table
 from flamerecon.refine_cameras import (
     N_PARAMS,
+    CalibrationFrame,
     CameraFit,
     RefineOptions,
     corrected_cameras,
@@ -144,12 +145,79 @@ def test_the_camera_fit_recovers_perturbed_cameras_to_a_fraction_of_a_pixel():
     K4, E = scene.cameras.intrinsics.clone(), scene.cameras.extrinsics.clone()
     calibration = with_cameras(scene.cameras, train, perturbed)
     volume = resample_to(scene.truth, grid.shape)
-    found = refine(calibration, train, scene.images, silhouettes(scene.images), grid,
-                   lambda views, cams: volume, RefineOptions(refine="pose+intrinsics", rounds=1))
+    frame = CalibrationFrame(scene.images, silhouettes(scene.images), lambda views, cams: volume)
+    found = refine(calibration, train, [frame], grid, RefineOptions(refine="pose+intrinsics", rounds=1))
     assert corner_error(camera_subset(found.cameras, train), truth, grid) < start / 5
     assert corner_error(camera_subset(found.cameras, train), truth, grid) < 0.35
     assert torch.equal(found.cameras.extrinsics[holdout], E[holdout])
     assert torch.equal(found.cameras.intrinsics[holdout], K4[holdout])
+
+
+def test_cameras_fitted_to_several_frames_at_once_recover_as_well_as_to_one():
+    """The cameras stand still while the flame moves: perturbed training cameras fitted to two
+    frames at once (each frame compared with its own true density, the pixel budget shared)
+    come back as close as when fitted to one frame with the whole budget."""
+    scene = scene64()
+    later = load_scene({**scene.meta["config"], "frame": 20})
+    train, _ = scene.split(None)
+    grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 48)
+    pivot = 0.5 * (grid.lo() + grid.hi())
+    truth = camera_subset(scene.cameras, train)
+    calibration = with_cameras(scene.cameras, train, corrected_cameras(truth, perturbation(truth, pivot), pivot))
+    start = corner_error(camera_subset(calibration, train), truth, grid)
+    frames = [CalibrationFrame(s.images, silhouettes(s.images), lambda views, cams, v=resample_to(s.truth, grid.shape): v)
+              for s in (scene, later)]
+    assert not torch.equal(later.images, scene.images)
+    options = RefineOptions(refine="pose", rounds=1)
+    one = refine(calibration, train, frames[:1], grid, options)
+    both = refine(calibration, train, frames, grid, options)
+    assert sum(r["rays"] for r in both.history) <= options.max_rays * len(train)
+    error_one = corner_error(camera_subset(one.cameras, train), truth, grid)
+    error_both = corner_error(camera_subset(both.cameras, train), truth, grid)
+    assert error_both < start / 3
+    assert error_both < 1.25 * error_one
+
+
+def test_calibration_frames_fit_the_cameras_once_per_capture_and_read_them_back(tmp_path, monkeypatch):
+    """calibration.frames: the training cameras are fitted to those frames (not the one
+    reconstructed), the fit is cached, and another frame of the capture reuses it; held-out
+    cameras keep their calibration, and the record says which frames were fitted."""
+    import flamerecon as fr
+    from flamerecon import capture_calibration
+    from flamerecon.reconstruction import calibrated_scene
+
+    monkeypatch.setenv("FLAMERECON_CACHE_DIR", str(tmp_path))
+    fits = []
+    real_refine = capture_calibration.refine
+    monkeypatch.setattr(capture_calibration, "refine", lambda *a, **k: fits.append(1) or real_refine(*a, **k))
+    options = fr.ReconstructionOptions(
+        grid=fr.GridOptions(resolution=16), solver=fr.SolverOptions().with_values(max_iters=20),
+        calibration=RefineOptions(refine="pose", rounds=1, iterations=2, frames=(3, 6)), device="cpu")
+    first = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32, frame=0)
+    other = fr.load_scene({**first.meta["config"], "frame": 9})
+    refined, record = calibrated_scene(first, options, torch.device("cpu"))
+    again, _ = calibrated_scene(other, options, torch.device("cpu"))
+    assert len(fits) == 1 and len(list(tmp_path.glob("calibration-*.pt"))) == 1
+    assert record["frames"] == [3, 6] and math.isfinite(record["train_psnr_before"])
+    train, holdout = first.split(None)
+    assert torch.equal(refined.cameras.extrinsics, again.cameras.extrinsics)
+    assert not torch.equal(refined.cameras.extrinsics[train], first.cameras.extrinsics[train])
+    assert torch.equal(refined.cameras.extrinsics[holdout], first.cameras.extrinsics[holdout])
+
+
+def test_calibration_frames_refuse_a_scene_that_does_not_know_its_capture():
+    import dataclasses
+
+    import flamerecon as fr
+    from flamerecon.reconstruction import calibrated_scene
+    from flamerecon.scenes import SceneError
+
+    scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32)
+    orphan = dataclasses.replace(scene, meta={k: v for k, v in scene.meta.items() if k != "config"})
+    options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=16),
+                                       calibration=RefineOptions(refine="pose", frames=(3,)), device="cpu")
+    with pytest.raises(SceneError, match="load_scene"):
+        calibrated_scene(orphan, options, torch.device("cpu"))
 
 
 @pytest.fixture(scope="module")

@@ -57,7 +57,7 @@ def entry_key(kind: str, options: dict, code: Iterable[ModuleType]) -> str:
     return h.hexdigest()
 
 
-def _digest(tensors: dict[str, torch.Tensor]) -> str:
+def digest(tensors: dict[str, torch.Tensor]) -> str:
     h = hashlib.sha256()
     for name in sorted(tensors):
         t = tensors[name].detach().cpu().contiguous()
@@ -71,7 +71,7 @@ def _read(path: Path, key: str) -> dict[str, torch.Tensor] | None:
     try:
         entry = torch.load(path, map_location="cpu", weights_only=True)
         tensors = entry["tensors"]
-        if entry["key"] == key and _digest(tensors) == entry["digest"]:
+        if entry["key"] == key and digest(tensors) == entry["digest"]:
             return tensors
     except FileNotFoundError:
         return None
@@ -84,7 +84,7 @@ def _read(path: Path, key: str) -> dict[str, torch.Tensor] | None:
 
 def _write(folder: Path, path: Path, key: str, tensors: dict[str, torch.Tensor]) -> None:
     buffer = io.BytesIO()
-    torch.save({"key": key, "digest": _digest(tensors), "tensors": tensors}, buffer)
+    torch.save({"key": key, "digest": digest(tensors), "tensors": tensors}, buffer)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, buffer.getvalue())

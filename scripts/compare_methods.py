@@ -1,0 +1,101 @@
+"""Methods side by side on the frames of a capture: held-out and training PSNR per frame, the
+all-black floor, and (``--loo``) the leave-one-view-out mean over every camera.
+
+    python scripts/compare_methods.py --frames 5,25,45,65 [--loo] [--out FILE.json] \
+        --method default= \
+        --method previous="calibration.refine=none debias.method=none grid.resolution=96 solver.tv=0.03" \
+        --method nnls="solver=fista solver.l1=0 solver.max_iters=100 calibration.refine=none debias.method=none" \
+        [scene=scalarflow by default, train.py overrides shared by every method ...]
+
+Each ``--method NAME=OVERRIDES`` is a train.py run with those overrides on top of the shared
+ones (an empty one is the scene's default); every frame is loaded once and reconstructed by
+each method through the Python API, as ``python train.py`` would. Report on frames that chose
+none of the settings compared (say which did). Prints one row per frame and method, then the
+means over frames; ``--out`` writes every figure as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+
+import flamerecon as fr
+from flamerecon.atomic import write_json_atomic
+from flamerecon.cli import ArgumentParser, run_script
+from flamerecon.leave_one_out import leave_one_out
+from flamerecon.pipeline import options_from_config
+from flamerecon.reconstruction import mean_of
+from flamerecon.resources import config_dir
+
+
+def method(text: str) -> tuple[str, list[str]]:
+    """'name=k=v k2=v2' -> ('name', ['k=v', 'k2=v2'])."""
+    name, sep, overrides = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected NAME=OVERRIDES, got '{text}'")
+    return name, overrides.split()
+
+
+def frame_list(text: str) -> list[int]:
+    try:
+        return [int(f) for f in text.split(",") if f]
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got '{text}'") from err
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("overrides", nargs="*", help="train.py overrides shared by every method")
+    parser.add_argument("--frames", type=frame_list, required=True, help="comma-separated scene.frame values")
+    parser.add_argument("--method", type=method, action="append", required=True, metavar="NAME=OVERRIDES")
+    parser.add_argument("--loo", action="store_true", help="also the leave-one-view-out mean over every camera")
+    parser.add_argument("--out", type=Path, help="JSON file of every figure")
+    args = parser.parse_args(argv)
+    shared = args.overrides if any(o.startswith("scene=") for o in args.overrides) else [
+        "scene=scalarflow", *args.overrides]
+
+    def config(extra: list[str]):
+        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+            return compose(config_name="train", overrides=[*shared, *extra])
+
+    def run() -> None:
+        rows = []
+        print(f"{'frame':>5} {'method':<12} {'held-out dB':>12} {'train dB':>9} {'black dB':>9}"
+              + (f" {'LOO mean dB':>12}" if args.loo else "") + f" {'seconds':>8}", flush=True)
+        for frame in args.frames:
+            scene = None
+            for name, extra in args.method:
+                cfg = config([*extra, f"scene.frame={frame}"])
+                scene = scene if scene is not None else fr.load_scene(cfg.scene)
+                clock = time.perf_counter()
+                metrics = fr.score(fr.reconstruct(scene, options_from_config(cfg)))
+                row = {"frame": frame, "method": name, "overrides": extra,
+                       "heldout": mean_of(metrics["heldout"], "psnr"), "train": mean_of(metrics["train"], "psnr"),
+                       "black": mean_of(metrics["heldout"], "psnr_black"),
+                       "seconds": time.perf_counter() - clock}
+                if args.loo:
+                    loo = leave_one_out(cfg, Path(args.out or "outputs/compare").with_suffix("") / f"{frame}-{name}",
+                                        scene=scene)
+                    row["loo"] = loo["mean"]["psnr"]
+                    row["loo_views"] = {v: r["psnr"] for v, r in loo["views"].items()}
+                rows.append(row)
+                print(f"{frame:5d} {name:<12} {row['heldout']:12.2f} {row['train']:9.2f} {row['black']:9.2f}"
+                      + (f" {row['loo']:12.2f}" if args.loo else "") + f" {row['seconds']:8.1f}", flush=True)
+                if args.out:
+                    write_json_atomic(args.out, {"shared": shared, "rows": rows})
+        for name, _ in args.method:
+            mine = [r for r in rows if r["method"] == name]
+            keys = ["heldout", "train", "black", *(["loo"] if args.loo else [])]
+            means = {k: sum(r[k] for r in mine) / len(mine) for k in keys}
+            print(f"{'mean':>5} {name:<12} {means['heldout']:12.2f} {means['train']:9.2f} {means['black']:9.2f}"
+                  + (f" {means['loo']:12.2f}" if args.loo else ""))
+
+    return run_script(run, args.debug)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
