@@ -19,8 +19,8 @@ def test_scalarflow_picks_its_cross_validated_solver_grid_and_resolution():
     cfg = composed("scene=scalarflow")
     assert cfg.scene.name == "scalarflow" and cfg.scene.downscale == 4
     assert cfg.solver.name == "tv"
-    assert (cfg.solver.tv, cfg.solver.l1_rel, cfg.solver.l1) == (0.03, 0.05, None)
-    assert cfg.grid.resolution == 96
+    assert (cfg.solver.tv, cfg.solver.l1_rel, cfg.solver.l1) == (0.02, 0.05, None)
+    assert cfg.grid.resolution == 128
     make_solver(cfg.solver.name, **solver_options(cfg))  # a complete, valid solver config
 
 
@@ -41,10 +41,11 @@ def test_the_synthetic_default_is_the_best_measured_method_and_the_papers_is_one
     assert (paper.solver.name, paper.solver.l1_rel, "smooth" in paper.solver) == ("fista", 0.001, False)
 
 
-def test_scalarflow_debiases_its_fixed_cross_validated_weights():
+def test_scalarflow_debiases_its_fixed_weights_and_fits_its_cameras_once_to_three_frames():
     cfg = composed("scene=scalarflow")
-    assert cfg.debias.method == "gain" and cfg.select.auto is False
-    assert cfg.calibration.refine == "pose"
+    assert (cfg.debias.method, cfg.debias.iterations) == ("refit", 10) and cfg.select.auto is False
+    assert cfg.calibration.refine == "pose" and cfg.calibration.resolution == 96
+    assert list(cfg.calibration.frames) == [30, 50, 70]
 
 
 def test_other_captures_choose_their_own_weights_and_the_paper_method_is_one_switch_away():

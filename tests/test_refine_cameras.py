@@ -220,6 +220,26 @@ def test_calibration_frames_refuse_a_scene_that_does_not_know_its_capture():
         calibrated_scene(orphan, options, torch.device("cpu"))
 
 
+def test_the_cameras_are_fitted_to_penalised_densities_when_the_run_refits(monkeypatch):
+    """debias.method=refit: the densities the cameras are fitted to are debiased by the gain
+    (an unpenalised refit would fit part of the cameras' errors into them); the final solve
+    still refits."""
+    import flamerecon as fr
+    from flamerecon import reconstruction
+    from flamerecon.debias import DebiasOptions
+
+    used = []
+    real = reconstruction.debias
+    monkeypatch.setattr(reconstruction, "debias", lambda o, *a: used.append(o.method) or real(o, *a))
+    options = fr.ReconstructionOptions(
+        grid=fr.GridOptions(resolution=16), solver=fr.SolverOptions().with_values(max_iters=10),
+        calibration=RefineOptions(refine="pose", rounds=2, iterations=1), debias=DebiasOptions("refit", 3),
+        device="cpu")
+    scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32)
+    fr.reconstruct(scene, options)
+    assert used[-1] == "refit" and set(used[:-1]) == {"gain"} and len(used) >= 3
+
+
 @pytest.fixture(scope="module")
 def refined_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("refined")
