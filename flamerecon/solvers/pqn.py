@@ -115,6 +115,11 @@ class ProjectedQuasiNewton(Solver):
             "rel_gap": gap / max(primal, 1e-30),
         }
 
+    def result(self, problem: Problem) -> tuple[torch.Tensor, float]:
+        """x and the objective of the problem iterated on (stacked too), from its residual."""
+        r, x = self.r.double(), self.x.double()
+        return self.x, 0.5 * float((r * r).sum()) + self.problem.l1 * float(x.sum())
+
     def snapshot(self, it: int) -> dict:
         return {"iteration": it, "x": self.x, "r": self.r, "g": self.g, "pairs": list(self.pairs),
                 "gamma": self.gamma, "history": self.history}
