@@ -212,6 +212,10 @@ def run(args) -> None:
     A64, P64 = A.A.to(torch.float64), b.double()
     print(f"grid {args.grid}^3: {A.shape[0]} rays x {A.shape[1]} voxels, lambda {lam:.6g}, "
           f"f* = {f_ref:.10g}; torch threads {torch.get_num_threads()}", flush=True)
+    d = A.adjoint(A.forward(torch.ones(A.shape[1], 1)))[:, 0] / norm_sq(A)
+    quantiles = torch.quantile(d, torch.tensor([0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0]))
+    print("SQS diagonal / ||A||^2, quantiles 0 10 25 50 75 90 100 %: "
+          + " ".join(f"{q:.2f}" for q in quantiles.tolist()), flush=True)
     print(f"{'variant':<12}{'it 1e-4':>8}{'prod 1e-4':>10}{'s 1e-4':>8}{'it 1e-6':>8}"
           f"{'prod 1e-6':>10}{'s 1e-6':>8}{'extra':>9}{'last gap':>10}  load")
     for variant in args.variants:
