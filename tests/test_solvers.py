@@ -139,7 +139,8 @@ def test_lbfgsb_reaches_sklearn_objective(lasso_case):
     assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-4 * ref
 
 
-@pytest.mark.parametrize("name", ["fista", "fista_smooth", "tv", "lbfgsb", "adam", "cgls", "sart"])
+@pytest.mark.parametrize("name", ["fista", "fista_smooth", "tv", "lbfgsb", "pqn", "pqn_smooth",
+                                  "adam", "cgls", "sart"])
 def test_every_iterative_solver_stops_at_the_first_check_past_its_time_budget(name):
     """max_seconds=0 is spent before the first check: the solve ends there, unconverged."""
     A, b, lam = tiny_problem()

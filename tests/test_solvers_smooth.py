@@ -42,7 +42,8 @@ def test_hull_gradient_links_only_neighbouring_hull_voxels():
     assert key(D) == key(ref)
 
 
-def test_fista_smooth_matches_lbfgsb():
+@pytest.mark.parametrize("name", ["fista_smooth", "pqn_smooth"])
+def test_smooth_solvers_match_lbfgsb(name):
     g = np.random.default_rng(0)
     M, N, C = len(HULL), 30, 2
     A = (g.random((N, M)) * (g.random((N, M)) < 0.4)).astype(np.float32)
@@ -51,7 +52,7 @@ def test_fista_smooth_matches_lbfgsb():
     r, c = np.nonzero(A)
     op = CsrOperator.from_coo(torch.tensor(r), torch.tensor(c), torch.tensor(A[r, c]), (N, M))
     problem = Problem(op, torch.tensor(b), lam, grid_shape=GRID, voxel_index=torch.tensor(HULL))
-    res = make_solver("fista_smooth", smooth=0.2, tol=1e-5, max_iters=5000).solve(problem)
+    res = make_solver(name, smooth=0.2, tol=1e-5, max_iters=5000).solve(problem)
     s = res.history[-1]["smooth_weight"]
     assert s > 0
 
@@ -76,7 +77,8 @@ def test_fista_smooth_matches_lbfgsb():
     assert f(plain.x.double().numpy().ravel())[0] > ref.fun * (1 + 1e-3)
 
 
-def test_fista_smooth_needs_hull_geometry():
+@pytest.mark.parametrize("name", ["fista_smooth", "pqn_smooth"])
+def test_smooth_solvers_need_hull_geometry(name):
     op = CsrOperator.from_coo(torch.tensor([0]), torch.tensor([0]), torch.tensor([1.0]), (1, 1))
-    with pytest.raises(ValueError, match="grid_shape"):
-        make_solver("fista_smooth").solve(Problem(op, torch.ones(1, 1)))
+    with pytest.raises(ValueError, match=f"solver={name} needs.*grid_shape"):
+        make_solver(name).solve(Problem(op, torch.ones(1, 1)))

@@ -1,6 +1,6 @@
 """Solvers for the nonnegative LASSO, registered by name (``solver=<name>``)."""
 
-from . import adam, cgls, fista, fista_smooth, lars, lbfgsb, newton_cg, primal_dual_tv, sart  # noqa: F401  (registers)
+from . import adam, cgls, fista, fista_smooth, lars, lbfgsb, newton_cg, pqn, primal_dual_tv, sart  # noqa: F401  (registers)
 from .base import (
     SOLVERS,
     LinearOperator,
