@@ -81,13 +81,14 @@ class PhotometryOptions:
 class SolverOptions:
     """The solver ``name`` with ``l1`` (absolute weight, wins) or ``l1_rel`` (times max(A^T P))
     and ``params``, the solver's own keyword options (checked strictly by
-    :func:`~flamerecon.solvers.make_solver`). The default is ``conf/solver/fista_smooth.yaml``."""
+    :func:`~flamerecon.solvers.make_solver`). The default is ``conf/solver/pqn_smooth.yaml``."""
 
-    name: str = "fista_smooth"
+    name: str = "pqn_smooth"
     l1: float | None = None
     l1_rel: float | None = 1.0e-3
     params: Mapping[str, Any] = field(default_factory=lambda: {
-        "smooth": 0.01, "max_iters": 200, "max_seconds": None, "tol": 1.0e-4, "check_every": 10})
+        "smooth": 0.01, "max_iters": 100, "max_seconds": None, "tol": 1.0e-4, "check_every": 10,
+        "memory": 10})
 
     @classmethod
     def from_dict(cls, node: Mapping) -> SolverOptions:

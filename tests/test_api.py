@@ -42,7 +42,7 @@ def test_the_typed_defaults_are_the_clis():
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         default = compose(config_name="train")  # python train.py, nothing on the command line
     assert options_from_config(default) == fr.ReconstructionOptions()
-    assert fr.ReconstructionOptions().solver.name == "fista_smooth"
+    assert fr.ReconstructionOptions().solver.name == "pqn_smooth"
 
 
 @pytest.mark.e2e
@@ -108,7 +108,7 @@ def test_a_misspelt_solver_option_is_refused_by_name():
     scene = fr.load_scene("synthetic", width=24, height=18, n_cameras=3, phantom_resolution=16)
     options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device="cpu",
                                        solver=fr.SolverOptions(params={"max_iter": 5}))
-    with pytest.raises(ConfigError, match=r"solver.max_iter: unknown option of solver 'fista_smooth'"):
+    with pytest.raises(ConfigError, match=r"solver.max_iter: unknown option of solver 'pqn_smooth'"):
         fr.reconstruct(scene, options)
 
 

@@ -35,7 +35,7 @@ def test_the_command_line_wins_over_the_scene_defaults():
 
 def test_the_synthetic_default_is_the_best_measured_method_and_the_papers_is_one_switch_away():
     cfg = composed()
-    assert (cfg.scene.name, cfg.solver.name, cfg.grid.resolution) == ("synthetic", "fista_smooth", 64)
+    assert (cfg.scene.name, cfg.solver.name, cfg.grid.resolution) == ("synthetic", "pqn_smooth", 64)
     assert (cfg.solver.l1_rel, cfg.solver.smooth) == (0.001, 0.01) and cfg.photometry.fit_gain is False
     paper = composed("solver=fista")
     assert (paper.solver.name, paper.solver.l1_rel, "smooth" in paper.solver) == ("fista", 0.001, False)

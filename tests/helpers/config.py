@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_dir
 from .paths import REPO, repo_env
 
 #: the real config shrunk to seconds: 5 cameras at 48x36, a 32-cell phantom, a 16-cell grid,
-#: solved by the paper's method (fista; the default is fista_smooth): a test of another solver
+#: solved by the paper's method (fista; the default is pqn_smooth): a test of another solver
 #: names it.
 TINY = [
     "solver=fista", "scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",
