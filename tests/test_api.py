@@ -87,6 +87,17 @@ def test_the_core_imports_neither_hydra_nor_omegaconf():
     assert done.stdout.strip() == "[]"
 
 
+@pytest.mark.parametrize("given, expected", [({}, "1000"), ({"GOMP_SPINCOUNT": "50"}, "50"),
+                                             ({"OMP_WAIT_POLICY": "ACTIVE"}, None)])
+def test_openmp_threads_spin_briefly_unless_the_user_says_otherwise(given, expected):
+    env = {k: v for k, v in repo_env().items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    code = "import os, flamerecon, torch; print(os.environ.get('GOMP_SPINCOUNT'))"
+    done = subprocess.run([sys.executable, "-c", code], check=False, cwd=REPO, env={**env, **given},
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == str(expected)
+
+
 def test_the_api_names_are_all_exported():
     assert fr.__all__ == sorted(fr.API)
     for name in fr.__all__:
