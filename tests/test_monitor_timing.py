@@ -53,6 +53,16 @@ def test_monitor_renders_within_its_share_of_the_solve(monkeypatch, share):
         assert monitor.seconds == pytest.approx(len(renders) * 1.0)
 
 
+def test_the_last_iteration_is_not_rendered_twice(monkeypatch):
+    renders = []
+    monkeypatch.setattr(run_hook.Monitor, "pictures", lambda self, it, x: renders.append(it))
+    monitor = run_hook.Monitor(None, Writer(), eval_every=10, eval_share=None, total=30)
+    for it in range(1, 31):
+        monitor(it, run_hook.torch.zeros(4, 3), {"objective": 1.0})
+    monitor.close()
+    assert renders == [10, 20]  # the run's final evaluation logs iteration 30's pictures
+
+
 def test_a_run_reports_its_time_split(tmp_path):
     metrics = pipeline.reconstruct(tiny_cfg("log.eval_every=5"), tmp_path)
     timing = metrics["timing"]

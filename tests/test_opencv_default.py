@@ -46,7 +46,10 @@ def test_the_opencv_default_chooses_its_weights_and_debiases(capture, tmp_path):
             "select.iterations=10", "select.folds=2", "solver.max_iters=30", "log.eval_every=0"])
     assert (cfg.solver.name, cfg.select.auto, cfg.debias.method, cfg.projector.rays) == (
         "tv", True, "gain", "hull")
+    assert cfg.calibration.refine == "pose"
     metrics = reconstruct(cfg, tmp_path / "run")
+    assert metrics["calibration"]["refine"] == "pose"
+    assert set(metrics["calibration"]["cameras"]) == set(scene.views[:-1])  # the training cameras refined
     selection = metrics["solver"]["selection"]
     candidates = [c["overrides"] for c in selection["candidates"]]
     assert selection["chosen"] in candidates and len(candidates) == len(cfg.select.candidates.tv)
