@@ -39,8 +39,9 @@ class Monitor:
     The held-out views are rendered at most every ``eval_every`` iterations (0: never) and
     only while the monitor's own wall time, this render included (predicted from the last
     one), stays within ``eval_share`` of the solve's (None: no limit), so that past the first
-    render they cost at most that share; never at the last iteration (``total``), whose
-    pictures the run's final evaluation logs. :attr:`seconds` is the wall time spent here.
+    render they cost at most that share; on the final grid (``tag_root`` ``""``) never at the
+    last iteration (``total``), whose pictures the run's final evaluation logs. :attr:`seconds`
+    is the wall time spent here.
     """
 
     def __init__(self, setup: Setup, writer: RunWriter, eval_every: int, eval_share: float | None,
@@ -50,7 +51,8 @@ class Monitor:
         desc = "solve" if not tag_root else f"solve {tag_root.rstrip('/')}"
         self.bar = tqdm(total=total, desc=desc, unit="it", leave=False, dynamic_ncols=True)
         self.tag_root = tag_root
-        self.total = int(total)
+        # the final grid's last iteration: its pictures come from the run's final evaluation
+        self.left_to_evaluation = int(total) if not tag_root and int(total) > 0 else None
         self.last = 0
         self.started = time.perf_counter()
         self.seconds = 0.0
@@ -67,7 +69,7 @@ class Monitor:
         self.writer.scalars(it, values, prefix=f"{self.tag_root}solve")
         affordable = self.share is None or (
             self.seconds + self.render_seconds <= self.share * (now - self.started))
-        if self.every > 0 and it - self.last_pictures >= self.every and (self.total <= 0 or it < self.total) and affordable:
+        if self.every > 0 and it - self.last_pictures >= self.every and it != self.left_to_evaluation and affordable:
             start = time.perf_counter()
             self.pictures(it, x)
             self.render_seconds = time.perf_counter() - start
