@@ -46,6 +46,9 @@ def test_scalarflow_debiases_its_fixed_weights_and_fits_its_cameras_once_to_thre
     assert (cfg.debias.method, cfg.debias.iterations) == ("refit", 10) and cfg.select.auto is False
     assert cfg.calibration.refine == "pose" and cfg.calibration.resolution == 96
     assert list(cfg.calibration.frames) == [30, 50, 70]
+    # select.auto=true walks a path that holds the fixed weights (it chose them on frames 5-65)
+    path = [(c.l1_rel, c.tv) for c in cfg.select.candidates.tv]
+    assert (cfg.solver.l1_rel, cfg.solver.tv) in path and path == sorted(path, reverse=True)
 
 
 def test_other_captures_choose_their_own_weights_and_the_paper_method_is_one_switch_away():
