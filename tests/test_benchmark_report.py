@@ -1,0 +1,42 @@
+"""scripts/benchmark.py's report: a peer's budget is swept by cold runs, so its time to a gap is
+only known to lie between its last run above the gap and its first at or below; our lead over
+the fastest peer is printed at both ends of that bracket."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from tests.helpers import REPO
+
+sys.path.insert(0, str(REPO / "scripts"))
+import benchmark
+
+F_REF = 10.0
+
+
+def trace(*gaps_at: tuple[float, float]) -> list[tuple[float, float]]:
+    """(seconds, objective) pairs from (seconds, relative gap) pairs."""
+    return [(seconds, F_REF * (1 + gap)) for seconds, gap in gaps_at]
+
+
+def test_a_sweep_brackets_the_time_to_a_gap_between_the_runs_either_side_of_it():
+    sweep = trace((1.0, 1e-2), (2.0, 3e-4), (4.0, 5e-5), (8.0, 1e-7))
+    assert benchmark.swept_bracket(sweep, F_REF, 1e-4) == [2.0, 4.0]
+    assert benchmark.seconds_to(sweep, F_REF, 1e-4) == 4.0  # the bracket's upper end
+    assert benchmark.swept_bracket(trace((3.0, 1e-5)), F_REF, 1e-4) == [3.0, 3.0]  # the first run gets there
+    assert benchmark.swept_bracket(trace((1.0, 1e-2), (2.0, 2e-4)), F_REF, 1e-4) is None
+
+
+def test_our_lead_is_given_at_both_ends_of_the_fastest_peers_bracket():
+    def method(seconds, bracket=None):
+        return {"seconds_to_1e-4": seconds, "bracket_1e-4": bracket}
+
+    methods = {"fista": method(5.0), "pqn": method(2.0), "newton_cg": method(None),
+               "sklearn_lasso": method(40.0, [20.0, 40.0]), "skglm_lasso": method(90.0, [50.0, 90.0]),
+               "celer_lasso": method(None)}
+    won = benchmark.lead(methods)
+    assert (won["ours"], won["seconds"], won["peer"], won["peer_bracket"]) == ("pqn", 2.0, "sklearn_lasso", [20.0, 40.0])
+    assert won["ratio"] == pytest.approx([10.0, 20.0])
+    assert benchmark.lead({"pqn": method(None), "sklearn_lasso": method(40.0, [20.0, 40.0])}) is None
