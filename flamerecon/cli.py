@@ -37,6 +37,27 @@ class ArgumentParser(argparse.ArgumentParser):
         raise SystemExit(fail(f"{self.prog}: {message}; see {self.prog} --help"))
 
 
+def frame_list(text: str) -> list[int]:
+    """argparse type: '5,25,45' -> [5, 25, 45]."""
+    try:
+        return [int(f) for f in text.split(",") if f]
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got '{text}'") from err
+
+
+def compose_train(overrides: list[str], default_scene: str = "scalarflow"):
+    """``conf/train.yaml`` composed with train.py ``overrides``, ``scene=<default_scene>`` in
+    front unless they choose a scene (the real-capture scripts' default)."""
+    from hydra import compose, initialize_config_dir
+
+    from .resources import config_dir
+
+    if not any(o.startswith("scene=") for o in overrides):
+        overrides = [f"scene={default_scene}", *overrides]
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        return compose(config_name="train", overrides=overrides)
+
+
 def run_script(body: Callable[[], int | None], debug: bool = False) -> int:
     """Run a script's ``body`` and return its exit status: 0 (or what it returns), or the
     status of the error it raised, printed as one line (re-raised with ``debug``)."""

@@ -21,15 +21,12 @@ import sys
 import time
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
-
 import flamerecon as fr
 from flamerecon.atomic import write_json_atomic
-from flamerecon.cli import ArgumentParser, run_script
+from flamerecon.cli import ArgumentParser, compose_train, frame_list, run_script
 from flamerecon.leave_one_out import leave_one_out
 from flamerecon.pipeline import options_from_config
 from flamerecon.reconstruction import mean_of
-from flamerecon.resources import config_dir
 
 
 def method(text: str) -> tuple[str, list[str]]:
@@ -40,13 +37,6 @@ def method(text: str) -> tuple[str, list[str]]:
     return name, overrides.split()
 
 
-def frame_list(text: str) -> list[int]:
-    try:
-        return [int(f) for f in text.split(",") if f]
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got '{text}'") from err
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="train.py overrides shared by every method")
@@ -55,12 +45,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--loo", action="store_true", help="also the leave-one-view-out mean over every camera")
     parser.add_argument("--out", type=Path, help="JSON file of every figure")
     args = parser.parse_args(argv)
-    shared = args.overrides if any(o.startswith("scene=") for o in args.overrides) else [
-        "scene=scalarflow", *args.overrides]
-
-    def config(extra: list[str]):
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            return compose(config_name="train", overrides=[*shared, *extra])
 
     def run() -> None:
         rows = []
@@ -69,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         for frame in args.frames:
             scene = None
             for name, extra in args.method:
-                cfg = config([*extra, f"scene.frame={frame}"])
+                cfg = compose_train([*args.overrides, *extra, f"scene.frame={frame}"])
                 scene = scene if scene is not None else fr.load_scene(cfg.scene)
                 clock = time.perf_counter()
                 metrics = fr.score(fr.reconstruct(scene, options_from_config(cfg)))
@@ -86,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{frame:5d} {name:<12} {row['heldout']:12.2f} {row['train']:9.2f} {row['black']:9.2f}"
                       + (f" {row['loo']:12.2f}" if args.loo else "") + f" {row['seconds']:8.1f}", flush=True)
                 if args.out:
-                    write_json_atomic(args.out, {"shared": shared, "rows": rows})
+                    write_json_atomic(args.out, {"shared": args.overrides, "rows": rows})
         for name, _ in args.method:
             mine = [r for r in rows if r["method"] == name]
             keys = ["heldout", "train", "black", *(["loo"] if args.loo else [])]

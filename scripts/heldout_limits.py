@@ -12,17 +12,15 @@ smoother prediction); with the view's pose refitted to its own image against the
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 
 import kornia
 import torch
-from hydra import compose, initialize_config_dir
 
 import flamerecon as fr
 from flamerecon.cameras import camera_subset
-from flamerecon.cli import ArgumentParser, run_script
+from flamerecon.cli import ArgumentParser, compose_train, frame_list, run_script
 from flamerecon.discretization import scene_masks
 from flamerecon.pipeline import options_from_config
 from flamerecon.refine_cameras import (
@@ -33,7 +31,6 @@ from flamerecon.refine_cameras import (
     fit_pixels,
     prior_sizes,
 )
-from flamerecon.resources import config_dir
 
 BLURS = (0.5, 1.0, 1.5, 2.0, 3.0)
 
@@ -63,27 +60,17 @@ def refit_pose(rec, view: int, iterations: int = 10) -> torch.Tensor:
     return fr.render(rec.density.cpu(), grid, corrected_cameras(cam, theta, pivot), rec.setup.step)
 
 
-def frame_list(text: str) -> list[int]:
-    try:
-        return [int(f) for f in text.split(",") if f]
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got '{text}'") from err
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
     parser.add_argument("--frames", type=frame_list, required=True, help="comma-separated scene.frame values")
     args = parser.parse_args(argv)
-    shared = args.overrides if any(o.startswith("scene=") for o in args.overrides) else [
-        "scene=scalarflow", *args.overrides]
 
     def run() -> None:
         print(f"{'frame':>5} {'view':<10} {'run':>6} {'+gain':>6} {'+blur':>6} {'+pose':>6}"
               "   (dB; every column after 'run' uses the held-out image)", flush=True)
         for frame in args.frames:
-            with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-                cfg = compose(config_name="train", overrides=[*shared, f"scene.frame={frame}"])
+            cfg = compose_train([*args.overrides, f"scene.frame={frame}"])
             options = options_from_config(cfg)
             scene = fr.load_scene(cfg.scene)
             rec = fr.reconstruct(scene, options)

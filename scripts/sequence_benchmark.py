@@ -14,13 +14,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from hydra import compose, initialize_config_dir
 
 import flamerecon as fr
-from flamerecon.cli import ArgumentParser, run_script
+from flamerecon.cli import ArgumentParser, compose_train, run_script
 from flamerecon.pipeline import options_from_config
 from flamerecon.reconstruction import mean_of
-from flamerecon.resources import config_dir
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,10 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def run() -> None:
-        overrides = args.overrides if any(o.startswith("scene=") for o in args.overrides) else [
-            "scene=scalarflow", *args.overrides]
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            base = compose(config_name="train", overrides=overrides)
+        base = compose_train(args.overrides)
         options = options_from_config(base)
         frames = list(range(args.frames[0], args.frames[1] + 1, args.every))
         print(f"{len(frames)} frames, {'warm' if args.warm else 'cold'} starts, "

@@ -3,13 +3,11 @@ exact resume from its state, zero above lambda_max."""
 
 from __future__ import annotations
 
-import copy
-
 import pytest
 import torch
 
 from flamerecon.solvers import Problem, make_solver, resolve_l1
-from tests.helpers import csr, objective, sklearn_objective, tiny_problem
+from tests.helpers import assert_resumes_exactly, csr, objective, sklearn_objective, tiny_problem
 
 pytest.importorskip("sklearn.linear_model")
 
@@ -40,22 +38,7 @@ def test_pqn_in_float32_reaches_1e_6_with_each_column_its_own_problem():
 def test_pqn_resumes_from_its_state_where_an_uninterrupted_solve_ends():
     A, b, lam = tiny_problem(seed=2, C=3)
     problem = Problem(csr(A), torch.tensor(b), lam)
-    options = {"tol": 0.0, "max_iters": 60, "check_every": 10, "memory": 4}
-    full = make_solver("pqn", **options).solve(problem)
-    saved = {}
-
-    def keep(it, x, info):
-        if it == 30:
-            saved.update(copy.deepcopy(solver.state()))
-
-    solver = make_solver("pqn", **options)
-    solver.solve(problem, callback=keep)
-    resumed = make_solver("pqn", **options)
-    resumed.load_state(saved)
-    again = resumed.solve(problem, x0=saved["x"])
-    assert again.iterations == full.iterations == 60
-    assert torch.equal(again.x, full.x)
-    assert [e["iteration"] for e in again.history] == [e["iteration"] for e in full.history]
+    assert_resumes_exactly("pqn", {"tol": 0.0, "max_iters": 60, "check_every": 10, "memory": 4}, problem, at=30)
 
 
 def test_pqn_zero_above_lambda_max_and_refuses_no_memory():

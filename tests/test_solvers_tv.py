@@ -4,7 +4,6 @@ phantom it should recover better than L1 alone, exact resume, bad weights, the c
 
 from __future__ import annotations
 
-import copy
 import itertools
 import json
 import subprocess
@@ -24,6 +23,7 @@ from tests.helpers import (
     FAST,
     REPO,
     TINY,
+    assert_resumes_exactly,
     csr,
     interrupt_at,
     objective,
@@ -202,22 +202,7 @@ def test_tv_recovers_a_piecewise_constant_phantom_better_than_l1_alone():
 
 def test_resume_from_state_ends_where_an_uninterrupted_solve_ends(tv_case):
     _, _, problem, _ = tv_case
-    options = {"tv": 0.05, "tol": 0.0, "max_iters": 200, "check_every": 10}
-    full = make_solver("tv", **options).solve(problem)
-    saved = {}
-
-    def keep(it, x, info):
-        if it == 70:
-            saved.update(copy.deepcopy(solver.state()))
-
-    solver = make_solver("tv", **options)
-    solver.solve(problem, callback=keep)
-    resumed = make_solver("tv", **options)
-    resumed.load_state(saved)
-    again = resumed.solve(problem, x0=saved["x"])
-    assert again.iterations == full.iterations == 200
-    assert torch.equal(again.x, full.x)
-    assert [e["iteration"] for e in again.history] == [e["iteration"] for e in full.history]
+    assert_resumes_exactly("tv", {"tv": 0.05, "tol": 0.0, "max_iters": 200, "check_every": 10}, problem, at=70)
 
 
 def test_an_interrupted_run_resumes_from_its_checkpoint_to_the_same_density(tmp_path, monkeypatch):

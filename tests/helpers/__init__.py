@@ -6,10 +6,17 @@ from .config import FAST, HELDOUT, SMALLER, TINY, TRAIN, VIEWS, CliRun, tiny_con
 from .geometry import random_hull, random_rays, ring_of_cameras
 from .interrupts import interrupt_at
 from .paths import REPO, repo_env
-from .problems import csr, objective, random_coo, sklearn_objective, tiny_problem
+from .problems import (
+           assert_resumes_exactly,
+           csr,
+           objective,
+           random_coo,
+           sklearn_objective,
+           tiny_problem,
+)
 from .scene import defective, tiny_cfg, tiny_synthetic
 
-__all__ = ["FAST", "HELDOUT", "REPO", "SMALLER", "TINY", "TRAIN", "VIEWS", "CliRun", "csr",
+__all__ = ["FAST", "HELDOUT", "REPO", "SMALLER", "TINY", "TRAIN", "VIEWS", "CliRun", "assert_resumes_exactly", "csr",
            "defective", "interrupt_at", "objective", "random_coo", "random_hull", "random_rays", "repo_env",
            "ring_of_cameras", "sklearn_objective", "tiny_cfg", "tiny_config", "tiny_problem",
            "tiny_synthetic"]

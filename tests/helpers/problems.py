@@ -47,3 +47,27 @@ def random_coo(seed: int = 0, N: int = 50, M: int = 40, nnz: int = 300):
     np.add.at(dense, (rows, cols), vals)
     op = CsrOperator.from_coo(torch.tensor(rows), torch.tensor(cols), torch.tensor(vals), (N, M))
     return op, dense
+
+
+def assert_resumes_exactly(name: str, options: dict, problem, at: int) -> None:
+    """Solver ``name`` stopped at iteration ``at`` (its :meth:`state` kept) and resumed from
+    that state ends where the uninterrupted solve ends: same iterations, iterate and history."""
+    import copy
+
+    from flamerecon.solvers import make_solver
+
+    full = make_solver(name, **options).solve(problem)
+    saved = {}
+
+    def keep(it, x, info):
+        if it == at:
+            saved.update(copy.deepcopy(solver.state()))
+
+    solver = make_solver(name, **options)
+    solver.solve(problem, callback=keep)
+    resumed = make_solver(name, **options)
+    resumed.load_state(saved)
+    again = resumed.solve(problem, x0=saved["x"])
+    assert again.iterations == full.iterations == options["max_iters"]
+    assert torch.equal(again.x, full.x)
+    assert [e["iteration"] for e in again.history] == [e["iteration"] for e in full.history]
