@@ -100,6 +100,12 @@ def render_scene_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, view
     return render_image(volume, grid, cams, step).cpu()
 
 
+def view_psnr(rendered: torch.Tensor, scene: Scene, view: int) -> float:
+    """Full-frame PSNR of one render (C, H, W) against view ``view``, in recorded units: the
+    ``psnr`` of :func:`score_views` alone (the monitor's; the full scores cost about a render)."""
+    return psnr(scene.to_recorded(rendered), scene.recorded_view(view))
+
+
 def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
                 masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
     """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against

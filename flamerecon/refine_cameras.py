@@ -293,7 +293,7 @@ class CameraFit:
         return pixels.detach() - self.target, J
 
 
-def camera_step(fit: CameraFit, theta: torch.Tensor, sizes: torch.Tensor, basis: torch.Tensor,
+def camera_step(fit: CameraFit | JointFit, theta: torch.Tensor, sizes: torch.Tensor, basis: torch.Tensor,
                 active: list[int], iterations: int) -> tuple[torch.Tensor, dict]:
     """Levenberg-Marquardt from ``theta`` (T, 9) on ``0.5 |r|^2 / s2 + 0.5 |z|^2`` over the
     gauge-fixed scaled corrections ``z = theta / sizes = basis @ psi`` (``s2``: the mean
@@ -423,8 +423,7 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
                 volumes = [(first if r == 0 else frame.solve(list(train), current)).detach()] * T
             index, valid = fit_pixels(frame.masks[train], options.band_px, rays_per_frame, generator)
             fits.append(CameraFit(volumes, grid, base, pivot, frame.images[train], index, valid, step))
-        fit = fits[0] if len(fits) == 1 else JointFit(fits)
-        theta, info = camera_step(fit, theta, sizes, basis, active, options.iterations)
+        theta, info = camera_step(JointFit(fits), theta, sizes, basis, active, options.iterations)
         history.append({**info, "rays": int(sum(int(f.valid.sum()) for f in fits))})
     refined = with_cameras(cameras, train, corrected_cameras(base, theta, pivot))
     return Refinement(refined, theta.detach(), initial[0], history)

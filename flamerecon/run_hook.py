@@ -17,10 +17,9 @@ from tqdm import tqdm
 from .checkpoint import CHECKPOINT_FILE
 from .discretization import Setup
 from .errors import Interrupted, ResumeError, SolveDiverged
-from .evaluation import render_scene_views
+from .evaluation import render_scene_views, view_psnr
 from .figures import top_view
 from .guard import SolveGuard, StopSolve, stop_signals
-from .metrics import psnr
 from .reconstruction import ResumePoint, SolveHook, Stage
 from .solvers import Problem, Solver, SolveResult
 from .summary import cells_of
@@ -94,8 +93,7 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
     """Held-out PSNR, held-out renders imgs (V, C, H, W) beside the captured views, and the top
     view of vol (C, nz, ny, nx), at step ``it``, under the tag prefix ``root``."""
     s = setup
-    # PSNR only: the full scores (SSIM above all) took 3x the render's own time
-    values = [psnr(s.scene.to_recorded(img), s.scene.recorded_view(v)) for img, v in zip(imgs, s.holdout)]
+    values = [view_psnr(img, s.scene, v) for img, v in zip(imgs, s.holdout)]
     writer.scalars(it, {"heldout_psnr": sum(values) / len(values)}, prefix=f"{root}eval")
     for img, v in zip(imgs, s.holdout):
         writer.image(f"{root}heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
