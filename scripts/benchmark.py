@@ -433,12 +433,11 @@ def swept_bracket(trace: list[tuple[float, float]], f_ref: float, target: float)
     return None
 
 
-def lead(methods: dict, target: float = TARGETS[0]) -> dict | None:
-    """Our fastest method to ``target`` against the fastest peer's bracket: the ratio at both ends."""
-    ours = [(m[f"seconds_to_{target:.0e}".replace("e-0", "e-")], name) for name, m in methods.items()
-            if name in OURS]
+def lead(methods: dict) -> dict | None:
+    """Our fastest method to 1e-4 against the fastest peer's bracket: the ratio at both ends."""
+    ours = [(m["seconds_to_1e-4"], name) for name, m in methods.items()
+            if name in OURS and m["seconds_to_1e-4"] is not None]
     peers = [(m["bracket_1e-4"], name) for name, m in methods.items() if name not in OURS and m["bracket_1e-4"]]
-    ours = [o for o in ours if o[0] is not None]
     if not ours or not peers:
         return None
     (t, name), (bracket, peer) = min(ours), min(peers, key=lambda p: p[0][1])
