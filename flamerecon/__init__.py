@@ -12,7 +12,8 @@ The Python API (what ``python train.py`` does, without Hydra or a run folder)::
 
 Step by step: ``setup = fr.build(scene, options)`` (silhouettes, hull, rays, operator),
 ``fr.fit(setup, options)``; ``fr.render(density, grid, cameras)``; ``fr.load_run(folder)``
-reads a CLI run folder back. Names are imported on first use.
+reads a CLI run folder back; ``fr.reconstruct_frames(scenes, options, fr.JointFramesOptions())``
+solves consecutive frames jointly. Names are imported on first use.
 """
 
 from __future__ import annotations
@@ -30,32 +31,35 @@ if "torch" not in sys.modules and not {"OMP_WAIT_POLICY", "GOMP_SPINCOUNT"} & se
     # flamerecon is imported first; the user's own OMP_WAIT_POLICY or GOMP_SPINCOUNT wins.
     os.environ["GOMP_SPINCOUNT"] = "1000"
 
-__version__ = "0.1.0"
+from flamerecon.resources import __version__ as __version__
 
 #: public name -> module it lives in (imported lazily, so ``import flamerecon`` stays cheap).
 API = {
-    "ReconstructionOptions": "options", "GridOptions": "options", "ProjectorOptions": "options",
-    "SilhouetteOptions": "options", "HullOptions": "options", "SolverOptions": "options",
-    "PhotometryOptions": "options", "SelectOptions": "options",
-    "DebiasOptions": "debias", "RefineOptions": "refine_cameras",
-    "Setup": "discretization", "build": "discretization", "make_problem": "discretization",
-    "Reconstruction": "reconstruction", "Fit": "reconstruction", "SolveHook": "reconstruction",
-    "Stage": "reconstruction", "fit": "reconstruction", "reconstruct": "reconstruction",
+    "ReconstructionOptions": "fit.options", "GridOptions": "fit.options", "ProjectorOptions": "fit.options",
+    "SilhouetteOptions": "fit.options", "HullOptions": "fit.options", "SolverOptions": "fit.options",
+    "PhotometryOptions": "fit.options", "SelectOptions": "fit.options",
+    "DebiasOptions": "fit.debias", "RefineOptions": "fit.refine_cameras",
+    "Setup": "fit.build", "build": "fit.build", "make_problem": "fit.build",
+    "Reconstruction": "fit.reconstruct", "Fit": "fit.reconstruct", "SolveHook": "fit.reconstruct",
+    "Stage": "fit.reconstruct", "fit": "fit.reconstruct", "reconstruct": "fit.reconstruct",
     "load_scene": "api", "render": "api", "score": "api",
-    "Run": "run_folder", "load_run": "run_folder",
-    "Problem": "solvers", "make_solver": "solvers", "VoxelGrid": "grid", "Scene": "scenes",
+    "Run": "run.folder", "load_run": "run.folder",
+    "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
+    "reconstruct_frames": "fit.joint_frames",
+    "Problem": "solvers", "make_solver": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes",
 }
 
-__all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "PhotometryOptions", "Problem",
-           "ProjectorOptions", "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run",
-           "Scene", "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions",
-           "Stage", "VoxelGrid", "build", "fit", "load_run", "load_scene", "make_problem",
-           "make_solver", "reconstruct", "render", "score"]
+__all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOptions",
+           "JointReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
+           "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
+           "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions", "Stage",
+           "VoxelGrid", "build", "fit", "load_run", "load_scene", "make_problem", "make_solver",
+           "reconstruct", "reconstruct_frames", "render", "score"]
 
 
 def __getattr__(name: str):
     if name in API:
-        value = getattr(importlib.import_module(f".{API[name]}", __name__), name)
+        value = getattr(importlib.import_module(f"{__name__}.{API[name]}"), name)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'flamerecon' has no attribute {name!r}")

@@ -8,11 +8,11 @@ from collections.abc import Mapping
 
 import torch
 
-from .cameras import cameras_to
-from .grid import VoxelGrid
-from .projector import render_image
-from .scenes import Scene
-from .scenes import load_scene as load_scene_node
+from flamerecon.geometry.cameras import cameras_to
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators.projector import render_image
+from flamerecon.scenes import Scene
+from flamerecon.scenes import load_scene as load_scene_node
 
 
 def load_scene(scene: str | Mapping, **options) -> Scene:
@@ -30,7 +30,7 @@ def render(volume: torch.Tensor, grid: VoxelGrid, cameras, step: float = 0.5) ->
 
 
 def score(result) -> dict:
-    """The metrics of a :class:`~flamerecon.reconstruction.Reconstruction` or a loaded
-    :class:`~flamerecon.run_folder.Run`: held-out and training PSNR / SSIM (with the all-black
+    """The metrics of a :class:`~flamerecon.fit.reconstruct.Reconstruction` or a loaded
+    :class:`~flamerecon.run.folder.Run`: held-out and training PSNR / SSIM (with the all-black
     floor), inside the silhouettes, and volume errors when the scene has a truth."""
     return result.score()

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+__version__ = "0.1.0"
+
 PACKAGE = Path(__file__).resolve().parent
 
 

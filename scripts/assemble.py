@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import sys
 
-from flamerecon.cli import ArgumentParser, run_script
-from flamerecon.sequence import assemble_sweep
+from flamerecon.outputs.sequence import assemble_sweep
+from flamerecon.run.cli import ArgumentParser, run_script
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -37,14 +37,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.device import resolve_device
-from flamerecon.grid import VoxelGrid
-from flamerecon.hull import visual_hull
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.hull import visual_hull
+from flamerecon.geometry.silhouettes import silhouettes
+from flamerecon.operators.projector import assemble, camera_rays
 from flamerecon.operators.sparse import CsrOperator
-from flamerecon.projector import assemble, camera_rays
+from flamerecon.run.cli import ArgumentParser, run_script
 from flamerecon.scenes import load_scene
-from flamerecon.silhouettes import silhouettes
 from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
 
 TARGETS = (1e-4, 1e-6)

@@ -22,11 +22,11 @@ import time
 from pathlib import Path
 
 import flamerecon as fr
-from flamerecon.atomic import write_json_atomic
-from flamerecon.cli import ArgumentParser, compose_train, frame_list, run_script
-from flamerecon.leave_one_out import leave_one_out
-from flamerecon.pipeline import options_from_config
-from flamerecon.reconstruction import mean_of
+from flamerecon.fit.reconstruct import mean_of
+from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.run.cli import ArgumentParser, compose_train, frame_list, run_script
+from flamerecon.run.leave_one_out import leave_one_out
+from flamerecon.run.pipeline import options_from_config
 
 
 def method(text: str) -> tuple[str, list[str]]:

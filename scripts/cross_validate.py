@@ -25,10 +25,10 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from flamerecon.atomic import write_json_atomic
-from flamerecon.cli import ArgumentParser, run_script
-from flamerecon.leave_one_out import leave_one_out
+from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.resources import config_dir
+from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.leave_one_out import leave_one_out
 from flamerecon.scenes import load_scene
 
 

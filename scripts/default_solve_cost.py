@@ -17,8 +17,8 @@ import sys
 import time
 
 import flamerecon as fr
-from flamerecon.cli import ArgumentParser, run_script
-from flamerecon.discretization import make_problem
+from flamerecon.fit.build import make_problem
+from flamerecon.run.cli import ArgumentParser, run_script
 
 
 class Counted:

@@ -15,10 +15,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.device import resolve_device
-from flamerecon.pipeline import evaluate, summary_table
-from flamerecon.run_lock import run_lock
+from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.lock import run_lock
+from flamerecon.run.pipeline import evaluate, summary_table
 
 
 def main(argv: list[str] | None = None) -> int:

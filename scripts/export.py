@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import sys
 
-from flamerecon.cli import ArgumentParser, run_script
-from flamerecon.export import FORMATS, export_run
-from flamerecon.run_lock import run_lock
+from flamerecon.outputs.export import FORMATS, export_run
+from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.lock import run_lock
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,11 +19,8 @@ import kornia
 import torch
 
 import flamerecon as fr
-from flamerecon.cameras import camera_subset
-from flamerecon.cli import ArgumentParser, compose_train, frame_list, run_script
-from flamerecon.discretization import scene_masks
-from flamerecon.pipeline import options_from_config
-from flamerecon.refine_cameras import (
+from flamerecon.fit.build import scene_masks
+from flamerecon.fit.refine_cameras import (
     CameraFit,
     RefineOptions,
     camera_step,
@@ -31,6 +28,9 @@ from flamerecon.refine_cameras import (
     fit_pixels,
     prior_sizes,
 )
+from flamerecon.geometry.cameras import camera_subset
+from flamerecon.run.cli import ArgumentParser, compose_train, frame_list, run_script
+from flamerecon.run.pipeline import options_from_config
 
 BLURS = (0.5, 1.0, 1.5, 2.0, 3.0)
 

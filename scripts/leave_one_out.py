@@ -16,9 +16,9 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
-from flamerecon.cli import ArgumentParser, run_script
-from flamerecon.leave_one_out import leave_one_out, loo_table
 from flamerecon.resources import config_dir
+from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.leave_one_out import leave_one_out, loo_table
 
 
 def names(value: str | None) -> list[str]:

@@ -38,9 +38,9 @@ import numpy as np
 import torch
 from benchmark import CACHE, objectives
 
-from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.errors import ConfigError
 from flamerecon.operators import CsrOperator, norm_sq
+from flamerecon.run.cli import ArgumentParser, run_script
 from flamerecon.solvers import Problem, make_solver
 
 TARGETS = (1e-4, 1e-6)

@@ -27,9 +27,9 @@ from hydra.errors import HydraException
 from omegaconf import OmegaConf
 
 from flamerecon.errors import FlameReconError
-from flamerecon.evaluation import score
-from flamerecon.pipeline import calibrated_scene, mean_of, prepare, resolve_device, solve
-from flamerecon.runner import script_error
+from flamerecon.evaluate.scores import score
+from flamerecon.run.pipeline import calibrated_scene, mean_of, prepare, resolve_device, solve
+from flamerecon.run.runner import script_error
 from flamerecon.scenes import load_scene
 
 

@@ -24,12 +24,11 @@ import cv2
 import numpy as np
 import torch
 
-from flamerecon.atomic import make_folder
-from flamerecon.cameras import make_cameras
-from flamerecon.cli import ArgumentParser, run_script
 from flamerecon.device import resolve_device
-from flamerecon.export import load_density
-from flamerecon.figures import (
+from flamerecon.geometry.cameras import make_cameras
+from flamerecon.outputs.atomic import make_folder
+from flamerecon.outputs.export import load_density
+from flamerecon.outputs.figures import (
     framing_distance,
     orbit_cameras,
     render_views,
@@ -43,7 +42,8 @@ from flamerecon.figures import (
     write_mp4,
     write_png,
 )
-from flamerecon.names import file_stem
+from flamerecon.outputs.names import file_stem
+from flamerecon.run.cli import ArgumentParser, run_script
 from flamerecon.scenes.calibration import check_intrinsics, check_rigid
 
 UP = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}

@@ -16,9 +16,9 @@ import time
 import numpy as np
 
 import flamerecon as fr
-from flamerecon.cli import ArgumentParser, compose_train, run_script
-from flamerecon.pipeline import options_from_config
-from flamerecon.reconstruction import mean_of
+from flamerecon.fit.reconstruct import mean_of
+from flamerecon.run.cli import ArgumentParser, compose_train, run_script
+from flamerecon.run.pipeline import options_from_config
 
 
 def main(argv: list[str] | None = None) -> int:

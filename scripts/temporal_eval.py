@@ -10,7 +10,7 @@ all frames. Prints, per
 frame and method, held-out PSNR (each held-out view), mean training PSNR and solve seconds
 (the joint solve's seconds are for all frames together), then the means. With
 ``--absorption ITERS`` each method's densities are also refitted with emission + absorption
-(:mod:`flamerecon.absorption`) and scored through the absorbing renderer, beside the same
+(:mod:`flamerecon.fit.absorption`) and scored through the absorbing renderer, beside the same
 refit with sigma held at 0 with ``--control`` (what the refit alone does); only the first
 method's.
 """
@@ -25,11 +25,18 @@ from pathlib import Path
 
 import numpy as np
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
-from flamerecon.evaluation import score
-from flamerecon.pipeline import resolve_device, solve
-from flamerecon.temporal_run import joint_options, prepare_frames, solve_frames
+from flamerecon.evaluate.scores import score
+from flamerecon.fit.joint_frames import (
+    JointFramesOptions,
+    joint_solve_options,
+    prepare_frames,
+    solve_frames,
+)
+from flamerecon.run.config import options_from_config
+from flamerecon.run.joint_frames import frame_config, frame_range
+from flamerecon.run.pipeline import resolve_device, solve
+from flamerecon.scenes import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -46,7 +53,7 @@ def absorbing_scores(setup, problem, volume, iters: int, fit_sigma: bool = True
     """Refit ``volume`` with absorption (``fit_sigma=False``: the same refit with sigma = 0, the
     control) under the frame's own l1 and tv weights (``problem``); (held-out PSNRs, training
     PSNR, sigma, seconds)."""
-    from flamerecon.absorption import AbsorptionOptions, fit_absorption, score_absorbing
+    from flamerecon.fit.absorption import AbsorptionOptions, fit_absorption, score_absorbing
 
     started = time.perf_counter()
     fit = fit_absorption(setup, volume, problem.l1, problem.tv,
@@ -79,14 +86,17 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(int(cfg.threads))
     device = resolve_device(cfg.device)
     started = time.perf_counter()
-    prepared = prepare_frames(cfg, device)
-    print(f"prepared {len(prepared.numbers)} frames in {time.perf_counter() - started:.1f} s; "
+    numbers = frame_range(cfg)
+    configs = [frame_config(cfg, t) for t in numbers]
+    options = options_from_config(cfg)
+    prepared = prepare_frames([load_scene(c.scene) for c in configs], options, device)
+    print(f"prepared {len(numbers)} frames in {time.perf_counter() - started:.1f} s; "
           f"load {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     rows = []  # (method, frame, held-out {view: psnr}, train psnr, seconds)
     methods: list[tuple[str, list]] = []
     if not args.no_baseline:
         volumes, seconds = [], []
-        for fcfg, setup in zip(prepared.configs, prepared.setups):
+        for fcfg, setup in zip(configs, prepared.setups):
             result, _, _ = solve(fcfg, setup)
             volumes.append(setup.volume(result.x))
             seconds.append(result.seconds)
@@ -94,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     for spec in args.weights:
         parts = spec.split(":")
         l2, tv, motion = float(parts[0]), float(parts[1]), parts[2] if len(parts) > 2 else "none"
-        wcfg = OmegaConf.merge(cfg, {"temporal": {"l2": l2, "tv": tv}})
-        opts = joint_options(wcfg, prepared.problems, prepared.norms_sq)
+        joint = JointFramesOptions(l2=l2, tv=tv, tol=float(cfg.temporal.tol))
+        opts = joint_solve_options(options, joint, prepared)
         result, shifts = solve_frames(prepared, opts, motion, int(cfg.temporal.max_shift))
         volumes = [s.volume(x) for s, x in zip(prepared.setups, result.xs)]
         if shifts is not None:
@@ -103,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         label = f"joint l2={l2:g} tv={tv:g}" + (" shift" if shifts is not None else "")
         methods.append((f"{label} ({result.iterations} it)", [(v, result.seconds) for v in volumes]))
     for name, per_frame in methods:
-        for t, setup, problem, (volume, secs) in zip(prepared.numbers, prepared.setups,
+        for t, setup, problem, (volume, secs) in zip(numbers, prepared.setups,
                                                      prepared.problems, per_frame):
             held, train = scores(setup, volume)
             rows.append((name, t, held, train, secs))

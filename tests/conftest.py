@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from flamerecon.grid import VoxelGrid
+from flamerecon.geometry.grid import VoxelGrid
 from tests.helpers import REPO
 
 #: the small synthetic scene the hull and synthetic tests share (keys of scenes/synthetic.py).

@@ -8,10 +8,10 @@ import math
 import pytest
 import torch
 
-from flamerecon.absorption import AbsorptionOptions, fit_absorption, integrate_absorbing
-from flamerecon.grid import VoxelGrid
-from flamerecon.pipeline import prepare, solve
-from flamerecon.projector import Rays, integrate_dense
+from flamerecon.fit.absorption import AbsorptionOptions, fit_absorption, integrate_absorbing
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators.projector import Rays, integrate_dense
+from flamerecon.run.pipeline import prepare, solve
 from tests.helpers import random_rays, tiny_cfg, tiny_synthetic
 
 

@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_dir
 
 import flamerecon as fr
 from flamerecon.errors import ConfigError, Interrupted
-from flamerecon.pipeline import options_from_config, reconstruct
+from flamerecon.run.pipeline import options_from_config, reconstruct
 from tests.helpers import REPO, CliRun, interrupt_at, repo_env, tiny_cfg, tiny_config
 
 #: the settings of tests.helpers.TINY, written as a notebook would write them.

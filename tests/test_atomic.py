@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flamerecon.atomic import (
+from flamerecon.outputs.atomic import (
     atomic_path,
     atomic_write_bytes,
     save_npz_atomic,
@@ -30,7 +30,7 @@ _CHILD = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from flamerecon.atomic import save_npz_atomic
+    from flamerecon.outputs.atomic import save_npz_atomic
 
     class BlocksWhenRead:
         def __array__(self, dtype=None, copy=None):

@@ -24,13 +24,13 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from flamerecon import checkpoint, pipeline
-from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w
 from flamerecon.errors import Interrupted
-from flamerecon.export import save_density
-from flamerecon.pipeline import reconstruct
-from flamerecon.run_hook import RunHook
-from flamerecon.runner import FAILED_FILE, run_task
+from flamerecon.geometry.cameras import K_of, opencv_w2c_to_opengl_c2w
+from flamerecon.outputs.export import save_density
+from flamerecon.run import checkpoint, pipeline
+from flamerecon.run.hook import RunHook
+from flamerecon.run.pipeline import reconstruct
+from flamerecon.run.runner import FAILED_FILE, run_task
 from flamerecon.scenes import SceneError, load_scene
 from flamerecon.scenes.frames import read_camera_frame
 from tests.helpers import FAST, REPO, interrupt_at, repo_env, tiny_cfg, tiny_synthetic
@@ -174,7 +174,7 @@ def _left_by_a_dead_process(run: Path):
 
 def _holder_killed(run: Path):
     holder = subprocess.Popen(
-        [sys.executable, "-c", ("import sys, time\nfrom flamerecon.run_lock import acquire\n"
+        [sys.executable, "-c", ("import sys, time\nfrom flamerecon.run.lock import acquire\n"
          f"acquire({str(run)!r}); print('held', flush=True); time.sleep(600)")],
         stdout=subprocess.PIPE, text=True, env=repo_env())
     assert holder.stdout.readline().strip() == "held"
@@ -398,14 +398,14 @@ def _full_checkpoint(monkeypatch):
 
     monkeypatch.setattr(checkpoint.torch, "save", no_space)
     full = os.statvfs_result((4096, 4096, 100, 0, 0, 100, 0, 0, 0, 255))
-    monkeypatch.setattr("flamerecon.atomic.os.statvfs", lambda path: full)
+    monkeypatch.setattr("flamerecon.outputs.atomic.os.statvfs", lambda path: full)
 
 
 def _full_density(monkeypatch):
     def no_space(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr("flamerecon.atomic.np.savez", no_space)
+    monkeypatch.setattr("flamerecon.outputs.atomic.np.savez", no_space)
 
 
 def _read_only_run_folder(monkeypatch):
@@ -416,7 +416,7 @@ def _read_only_run_folder(monkeypatch):
             raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
         return real_open(path, flags, *args, **kwargs)
 
-    monkeypatch.setattr("flamerecon.run_lock.os.open", refuse)
+    monkeypatch.setattr("flamerecon.run.lock.os.open", refuse)
 
 
 RUN_WRITE_FAILURES = {
@@ -457,7 +457,7 @@ def _bug_after_the_folder_exists(monkeypatch, tmp_path):
     def boom(*args, **kwargs):
         raise ZeroDivisionError("a bug")
 
-    monkeypatch.setattr("flamerecon.reconstruction.build", boom)
+    monkeypatch.setattr("flamerecon.fit.reconstruct.build", boom)
     return tiny_cfg(), tmp_path / "run", None
 
 
@@ -700,14 +700,14 @@ def test_library_errors_become_field_named(case, tmp_path, capsys):
 
 
 def test_file_stems_stay_unique():
-    from flamerecon.names import file_stems
+    from flamerecon.outputs.names import file_stems
 
     assert file_stems(["train/r_0", "test/r_0", "train_r_0", "../x", ".hidden"]) == [
         "train_r_0", "test_r_0", "train_r_0-2", "_x", "hidden"]
 
 
 def test_leave_one_out_checks_the_options_first(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("flamerecon.leave_one_out.load_scene", lambda *a: pytest.fail("loaded"))
+    monkeypatch.setattr("flamerecon.run.leave_one_out.load_scene", lambda *a: pytest.fail("loaded"))
     code, line = script_outcome(capsys, "leave_one_out", [*TINY, "projector.step=0", "--out",
                                                          str(tmp_path / "loo")])
     assert code == 2 and line.startswith("projector.step: got 0"), line
@@ -727,7 +727,7 @@ BEFORE_THE_SOLVE = {  # cases that used to fail only after the solve, or with a 
 @pytest.mark.parametrize("case", list(BEFORE_THE_SOLVE))
 def test_refused_before_the_solve(case, tmp_path, capsys, monkeypatch):
     override, message = BEFORE_THE_SOLVE[case]
-    monkeypatch.setattr("flamerecon.export._vtk", _no_vtk)
+    monkeypatch.setattr("flamerecon.outputs.export._vtk", _no_vtk)
     monkeypatch.setattr(RunHook, "solve", lambda *a, **k: pytest.fail("solved"))
     (tmp_path / "run").mkdir()
     code, line = outcome(capsys, tiny_cfg(override), tmp_path / "run")

@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from flamerecon.cameras import (
+from flamerecon.geometry.cameras import (
     camera_centers,
     intrinsics_matrix,
     look_at,

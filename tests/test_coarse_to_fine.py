@@ -14,7 +14,7 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from flamerecon.errors import ConfigError, Interrupted, ResumeError, SolveDiverged
-from flamerecon.pipeline import prepare, reconstruct, solve
+from flamerecon.run.pipeline import prepare, reconstruct, solve
 from flamerecon.solvers import Solver
 from tests.helpers import CliRun, interrupt_at, tiny_cfg, tiny_synthetic
 
@@ -120,7 +120,7 @@ def test_an_absolute_l1_is_scaled_by_the_cell_volume(tmp_path):
 
 
 def test_leave_one_out_solves_the_levels_in_every_fold(tmp_path, solves):
-    from flamerecon.leave_one_out import leave_one_out
+    from flamerecon.run.leave_one_out import leave_one_out
 
     cfg = tiny_cfg(*FIXED, "solver.max_iters=5", "grid.levels=[8]")
     leave_one_out(cfg, tmp_path, views=["cam03", "cam04"])

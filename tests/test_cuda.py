@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from flamerecon.operators import dottest
-from flamerecon.projector import make_operator
+from flamerecon.operators.projector import make_operator
 from flamerecon.solvers import Problem, make_solver
 from tests.helpers import REPO, TINY, csr, random_hull, random_rays, repo_env, tiny_problem
 

@@ -10,16 +10,16 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from flamerecon.cameras import camera_subset
-from flamerecon.debias import DebiasOptions, debias, training_gain
 from flamerecon.errors import ConfigError
-from flamerecon.evaluation import render_scene_views, score_views
-from flamerecon.hull import hull_footprint
-from flamerecon.pipeline import choose_weights, prepare, solve
-from flamerecon.projector import render_image
+from flamerecon.evaluate.scores import render_scene_views, score_views
+from flamerecon.fit.debias import DebiasOptions, debias, training_gain
+from flamerecon.fit.weight_selection import RowSubset, SelectionOptions, fold_views, select_weights
+from flamerecon.geometry.cameras import camera_subset
+from flamerecon.geometry.hull import hull_footprint
+from flamerecon.operators.projector import render_image
+from flamerecon.run.pipeline import choose_weights, prepare, solve
 from flamerecon.scenes import load_scene
 from flamerecon.solvers import Problem, make_solver
-from flamerecon.weight_selection import RowSubset, SelectionOptions, fold_views, select_weights
 from tests.helpers import REPO
 
 TINY = ["scene.width=48", "scene.height=36", "scene.n_cameras=5", "scene.phantom_resolution=32",

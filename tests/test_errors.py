@@ -12,7 +12,6 @@ import torch
 from hydra.errors import ConfigCompositionException, MissingConfigException
 from omegaconf import OmegaConf
 
-from flamerecon.checkpoint import save_checkpoint
 from flamerecon.errors import (
     ConfigError,
     FlameReconError,
@@ -20,10 +19,11 @@ from flamerecon.errors import (
     MemoryBudgetError,
     ResumeError,
 )
-from flamerecon.export import DensityFileError
-from flamerecon.pipeline import evaluate, prepare, reconstruct
-from flamerecon.projector import MatrixFreeOperator
-from flamerecon.runner import run_task
+from flamerecon.operators.projector import MatrixFreeOperator
+from flamerecon.outputs.export import DensityFileError
+from flamerecon.run.checkpoint import save_checkpoint
+from flamerecon.run.pipeline import evaluate, prepare, reconstruct
+from flamerecon.run.runner import run_task
 from flamerecon.scenes import SceneError
 from tests.helpers import FAST, REPO, TINY, defective, repo_env, tiny_cfg, tiny_synthetic
 

@@ -11,11 +11,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from flamerecon.cameras import cameras_to
-from flamerecon.evaluation import masked_scores, native_scene, render_support, silhouette_union
-from flamerecon.grid import VoxelGrid
-from flamerecon.pipeline import evaluate, reconstruct, summary_table
-from flamerecon.projector import render_image
+from flamerecon.evaluate.scores import masked_scores, native_scene, render_support, silhouette_union
+from flamerecon.geometry.cameras import cameras_to
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators.projector import render_image
+from flamerecon.run.pipeline import evaluate, reconstruct, summary_table
 from flamerecon.scenes import load_scene
 from tests.helpers import tiny_config
 

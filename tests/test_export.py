@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from flamerecon.export import (
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.outputs.export import (
     DensityFileError,
     export_run,
     load_density,
@@ -26,7 +27,6 @@ from flamerecon.export import (
     write_raw,
     write_vti,
 )
-from flamerecon.grid import VoxelGrid
 from tests.helpers import repo_env
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from flamerecon.cameras import camera_centers, project_points
-from flamerecon.export import save_density
-from flamerecon.figures import (
+from flamerecon.geometry.cameras import camera_centers, project_points
+from flamerecon.outputs.export import save_density
+from flamerecon.outputs.figures import (
     compare_images,
     framing_distance,
     grid_of,

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from flamerecon.sequence import assemble_sweep
+from flamerecon.outputs.sequence import assemble_sweep
 from tests.helpers import REPO, TINY
 
 

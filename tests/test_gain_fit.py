@@ -11,7 +11,7 @@ import math
 import pytest
 from omegaconf import OmegaConf
 
-from flamerecon.pipeline import reconstruct
+from flamerecon.run.pipeline import reconstruct
 from flamerecon.scenes import SCENE_LOADERS, register_scene
 from flamerecon.scenes.synthetic import load as load_synthetic
 from tests.helpers import tiny_config

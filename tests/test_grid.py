@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from flamerecon.grid import VoxelGrid, resolution_for_box
+from flamerecon.geometry.grid import VoxelGrid, resolution_for_box
 
 
 def test_an_int_resolution_counts_cells_along_the_longest_side_and_follows_the_aspect():

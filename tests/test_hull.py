@@ -9,11 +9,11 @@ import torch
 from omegaconf import OmegaConf
 from scipy import ndimage
 
-from flamerecon.cameras import intrinsics_matrix, look_at, make_cameras
-from flamerecon.grid import VoxelGrid
-from flamerecon.hull import carve_counts, visual_hull
-from flamerecon.metrics import resample_to
-from flamerecon.silhouettes import silhouettes
+from flamerecon.evaluate.metrics import resample_to
+from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.hull import carve_counts, visual_hull
+from flamerecon.geometry.silhouettes import silhouettes
 
 W = H = 16
 GRID = VoxelGrid.from_box((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5), 8)

@@ -8,8 +8,8 @@ import runpy
 
 import pytest
 
-from flamerecon.leave_one_out import leave_one_out
-from flamerecon.pipeline import reconstruct
+from flamerecon.run.leave_one_out import leave_one_out
+from flamerecon.run.pipeline import reconstruct
 from flamerecon.scenes import SceneError
 from tests.helpers import REPO, TINY, tiny_config
 

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from flamerecon.metrics import psnr, resample_to, ssim, volume_errors
+from flamerecon.evaluate.metrics import psnr, resample_to, ssim, volume_errors
 
 
 def test_psnr_matches_a_hand_computed_value():

@@ -7,7 +7,8 @@ import json
 
 import pytest
 
-from flamerecon import pipeline, run_hook
+from flamerecon.run import hook as run_hook
+from flamerecon.run import pipeline
 from tests.helpers import tiny_cfg
 
 

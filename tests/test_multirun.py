@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from flamerecon.runner import FAILED_FILE
+from flamerecon.run.runner import FAILED_FILE
 from tests.helpers import FAST, REPO, TINY, repo_env
 
 

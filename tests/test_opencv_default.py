@@ -11,8 +11,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from flamerecon.cameras import K_of
-from flamerecon.pipeline import reconstruct
+from flamerecon.geometry.cameras import K_of
+from flamerecon.run.pipeline import reconstruct
 from tests.helpers import REPO, tiny_synthetic
 from tests.helpers.views import write_png
 

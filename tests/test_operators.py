@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from flamerecon.grid import VoxelGrid
+from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators import (
     HullGradient,
     StackedOperator,
@@ -17,7 +17,7 @@ from flamerecon.operators import (
     norm,
     norm_sq,
 )
-from flamerecon.projector import make_operator
+from flamerecon.operators.projector import make_operator
 from flamerecon.solvers import Problem, make_solver
 from tests.helpers import csr, random_coo, random_hull, random_rays, tiny_problem
 

@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from flamerecon.errors import ConfigError
-from flamerecon.options_check import RULES, check_options, leaves
+from flamerecon.fit.option_rules import RULES, check_options, leaves
 from tests.helpers import REPO
 
 GROUPS = sorted(f"{d.name}={f.stem}" for d in (REPO / "conf").iterdir()
@@ -36,7 +36,7 @@ def test_every_key_of_every_group_has_a_rule_and_its_default_passes(choice):
     config = composed(choice)
     flat = leaves(config)
     missing = sorted(k for k in flat if k not in RULES)
-    assert not missing, f"{choice}: keys without a rule in flamerecon/options_check.py: {missing}"
+    assert not missing, f"{choice}: keys without a rule in flamerecon/fit/option_rules.py: {missing}"
     numeric = [k for k, v in flat.items()
                if isinstance(v, (int, float)) and not isinstance(v, bool)]
     assert numeric and all(k in RULES for k in numeric)

@@ -17,7 +17,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from flamerecon.resources import checkout_root, config_dir
-from flamerecon.runner import anchor_scene_root
+from flamerecon.run.runner import anchor_scene_root
 from flamerecon.scenes import SceneError, calibration
 from flamerecon.scenes.calibration import resolve_root
 from tests.helpers import FAST, REPO, TINY

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from flamerecon.photometry import (
+from flamerecon.geometry.photometry import (
     apply_gain_offset,
     delinearize,
     fit_gain_offset,
@@ -40,8 +40,8 @@ def test_scores_are_taken_in_recorded_units(small_scene):
     of the linear values, nor of an image rebuilt from them)."""
     from dataclasses import replace
 
-    from flamerecon.evaluation import score_views
-    from flamerecon.metrics import psnr
+    from flamerecon.evaluate.metrics import psnr
+    from flamerecon.evaluate.scores import score_views
 
     recorded = small_scene.images
     scene = replace(small_scene, images=linearize(recorded, 2.2, 0.05), recorded_images=recorded,

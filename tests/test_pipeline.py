@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from tensorboard.backend.event_processing import event_accumulator as ea
 
-from flamerecon.pipeline import evaluate, reconstruct
+from flamerecon.run.pipeline import evaluate, reconstruct
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.synthetic import ring_cameras
 from tests.helpers import HELDOUT, REPO, SMALLER, TRAIN, VIEWS, CliRun, tiny_config

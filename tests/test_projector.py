@@ -14,10 +14,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from flamerecon.cameras import pixel_centers, pixel_rays
-from flamerecon.grid import VoxelGrid
+from flamerecon.geometry.cameras import pixel_centers, pixel_rays
+from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators import CsrOperator
-from flamerecon.projector import (
+from flamerecon.operators.projector import (
     MatrixFreeOperator,
     Rays,
     assemble,

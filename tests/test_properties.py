@@ -7,11 +7,11 @@ import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from flamerecon.cameras import intrinsics_matrix, look_at, make_cameras
-from flamerecon.grid import VoxelGrid
-from flamerecon.hull import visual_hull
+from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.hull import visual_hull
 from flamerecon.operators import dottest
-from flamerecon.projector import MatrixFreeOperator, assemble, camera_rays, render_image
+from flamerecon.operators.projector import MatrixFreeOperator, assemble, camera_rays, render_image
 
 # whole numbers too, so that rays parallel to the box's faces (zero direction components) occur
 coord = st.one_of(st.integers(-3, 3).map(float), st.floats(-4.0, 4.0, allow_nan=False))

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from hydra import compose, initialize_config_dir
 
-from flamerecon.pipeline import solver_options
+from flamerecon.run.pipeline import solver_options
 from flamerecon.solvers import make_solver
 from tests.helpers import REPO
 

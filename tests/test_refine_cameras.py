@@ -1,4 +1,4 @@
-"""Camera self-calibration (flamerecon/refine_cameras.py): the corrections' parametrization and
+"""Camera self-calibration (flamerecon/fit/refine_cameras.py): the corrections' parametrization and
 gauge, their Jacobian against finite differences, the camera fit recovering perturbed
 cameras, and a run with ``calibration.refine`` writing what it found."""
 
@@ -13,12 +13,9 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from flamerecon.cameras import K_of, camera_centers, camera_subset, project_points
 from flamerecon.errors import ConfigError
-from flamerecon.grid import VoxelGrid
-from flamerecon.metrics import resample_to
-from flamerecon.pipeline import evaluate, reconstruct, refine_options, summary_table
-from flamerecon.refine_cameras import (
+from flamerecon.evaluate.metrics import resample_to
+from flamerecon.fit.refine_cameras import (
     N_PARAMS,
     CalibrationFrame,
     CameraFit,
@@ -30,8 +27,11 @@ from flamerecon.refine_cameras import (
     skew,
     with_cameras,
 )
+from flamerecon.geometry.cameras import K_of, camera_centers, camera_subset, project_points
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.silhouettes import silhouettes
+from flamerecon.run.pipeline import evaluate, reconstruct, refine_options, summary_table
 from flamerecon.scenes import load_scene
-from flamerecon.silhouettes import silhouettes
 from tests.helpers import REPO
 
 
@@ -188,8 +188,8 @@ def test_calibration_frames_fit_the_cameras_once_per_capture_and_read_them_back(
     reconstructed), the fit is cached, and another frame of the capture reuses it; held-out
     cameras keep their calibration, and the record says which frames were fitted."""
     import flamerecon as fr
-    from flamerecon import capture_calibration
-    from flamerecon.reconstruction import calibrated_scene
+    from flamerecon.fit import capture_calibration
+    from flamerecon.fit.reconstruct import calibrated_scene
 
     monkeypatch.setenv("FLAMERECON_CACHE_DIR", str(tmp_path))
     fits = []
@@ -214,7 +214,7 @@ def test_calibration_frames_refuse_a_scene_that_does_not_know_its_capture():
     import dataclasses
 
     import flamerecon as fr
-    from flamerecon.reconstruction import calibrated_scene
+    from flamerecon.fit.reconstruct import calibrated_scene
     from flamerecon.scenes import SceneError
 
     scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32)
@@ -230,8 +230,8 @@ def test_the_cameras_are_fitted_to_penalised_densities_when_the_run_refits(monke
     (an unpenalised refit would fit part of the cameras' errors into them); the final solve
     still refits."""
     import flamerecon as fr
-    from flamerecon import reconstruction
-    from flamerecon.debias import DebiasOptions
+    from flamerecon.fit import reconstruct as reconstruction
+    from flamerecon.fit.debias import DebiasOptions
 
     used = []
     real = reconstruction.debias

@@ -17,8 +17,8 @@ import torch
 from omegaconf import OmegaConf
 
 from flamerecon.errors import Interrupted, SolveDiverged
-from flamerecon.pipeline import reconstruct
-from flamerecon.runner import FAILED_FILE, run_task
+from flamerecon.run.pipeline import reconstruct
+from flamerecon.run.runner import FAILED_FILE, run_task
 from flamerecon.solvers import SOLVERS, Solver, SolveResult, register
 from tests.helpers import FAST, REPO, TINY, interrupt_at, repo_env, tiny_cfg
 
@@ -29,7 +29,7 @@ SOLVE = ["grid.resolution=12", "solver.tol=0", "checkpoint.every=10"]
 _CHILD = textwrap.dedent(
     """
     import sys, time
-    from flamerecon import run_hook
+    from flamerecon.run import hook as run_hook
     original = run_hook.Monitor.__call__
     def slow(self, it, x, info):
         original(self, it, x, info)

@@ -81,7 +81,7 @@ def test_the_key_follows_the_options_and_the_code(folder):
     key = cache.entry_key("toy", {"n": 1}, CODE)
     assert key == cache.entry_key("toy", {"n": 1}, CODE)
     assert key != cache.entry_key("toy", {"n": 2}, CODE)
-    assert key != cache.entry_key("toy", {"n": 1}, CODE + [sys.modules["flamerecon.atomic"]])
+    assert key != cache.entry_key("toy", {"n": 1}, CODE + [sys.modules["flamerecon.outputs.atomic"]])
 
 
 def test_an_unwritable_cache_folder_only_costs_the_compute(tmp_path, monkeypatch):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w
+from flamerecon.geometry.cameras import K_of, opencv_w2c_to_opengl_c2w
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.nerf import load_nerf
 from tests.helpers.views import (

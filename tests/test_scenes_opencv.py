@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from flamerecon.cameras import K_of
+from flamerecon.geometry.cameras import K_of
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.opencv_calib import load_opencv
 from tests.helpers.views import NAMES, as_float, random_images, ring_cameras, write_png
@@ -138,7 +138,7 @@ def test_plain_yaml_and_box_from_silhouettes(tmp_path):
     bright ball, and holds the ball's centre."""
     import yaml
 
-    from flamerecon.cameras import make_cameras, project_points
+    from flamerecon.geometry.cameras import make_cameras, project_points
 
     entries = camera_entries()
     K = expected_K()

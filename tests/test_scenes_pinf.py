@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from flamerecon.cameras import K_of, opencv_w2c_to_opengl_c2w, project_points
-from flamerecon.grid import VoxelGrid
+from flamerecon.geometry.cameras import K_of, opencv_w2c_to_opengl_c2w, project_points
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.silhouettes import estimate_bbox, silhouettes
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.pinf import load_pinf
-from flamerecon.silhouettes import estimate_bbox, silhouettes
 from tests.helpers.views import (
     BOX,
     HEIGHT,

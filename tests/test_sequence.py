@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flamerecon.export import save_density
-from flamerecon.sequence import SweepError, assemble_sweep, find_frame_runs, flatten_metrics
+from flamerecon.outputs.export import save_density
+from flamerecon.outputs.sequence import SweepError, assemble_sweep, find_frame_runs, flatten_metrics
 from tests.helpers import repo_env
 
 REPO = Path(__file__).resolve().parents[1]
@@ -151,7 +151,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from flamerecon.export import save_density
+from flamerecon.outputs.export import save_density
 
 
 @hydra.main(version_base=None, config_path=None, config_name=None)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from flamerecon.cameras import make_cameras, project_points
-from flamerecon.silhouettes import estimate_bbox, otsu_threshold, silhouettes
+from flamerecon.geometry.cameras import make_cameras, project_points
+from flamerecon.geometry.silhouettes import estimate_bbox, otsu_threshold, silhouettes
 from tests.helpers.views import ring_cameras
 
 H, W = 48, 64

@@ -11,8 +11,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from flamerecon.operators import norm_sq
-from flamerecon.pipeline import solver_options
-from flamerecon.runner import run_task
+from flamerecon.run.pipeline import solver_options
+from flamerecon.run.runner import run_task
 from flamerecon.solvers import SOLVERS, Problem, make_solver
 from tests.helpers import REPO, csr, tiny_cfg, tiny_problem
 

@@ -17,7 +17,7 @@ from tensorboard.plugins.hparams import plugin_data_pb2
 
 from flamerecon.errors import ConfigError, Interrupted
 from flamerecon.operators import HullGradient, hull_gradient
-from flamerecon.pipeline import reconstruct
+from flamerecon.run.pipeline import reconstruct
 from flamerecon.solvers import Problem, make_solver
 from tests.helpers import (
     FAST,

@@ -7,9 +7,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from flamerecon.grid import VoxelGrid
-from flamerecon.metrics import resample_to
-from flamerecon.projector import render_image
+from flamerecon.evaluate.metrics import resample_to
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators.projector import render_image
 from flamerecon.scenes import Scene, load_scene
 
 TINY = {"name": "synthetic", "n_cameras": 3, "width": 40, "height": 30, "phantom_resolution": 36}

@@ -10,7 +10,7 @@ from scipy.optimize import minimize
 
 from flamerecon.operators import CsrOperator
 from flamerecon.solvers import Problem, make_solver
-from flamerecon.temporal import (
+from flamerecon.solvers.temporal import (
     FrameProblem,
     JointOptions,
     coupling_pairs,

@@ -12,8 +12,8 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 
 from flamerecon.errors import ConfigError
-from flamerecon.export import load_density
-from flamerecon.temporal_run import reconstruct_frames
+from flamerecon.outputs.export import load_density
+from flamerecon.run.joint_frames import run_frames
 from tests.helpers import FAST, REPO, repo_env
 from tests.helpers import TINY as TINY_SCENE
 
@@ -60,8 +60,8 @@ def test_coupling_pulls_neighbouring_frames_together(tmp_path):
         vols = [load_density(folder / "frames" / f"{t:06d}").density for t in range(3)]
         return sum(float(np.abs(b - a).sum()) for a, b in pairwise(vols))
 
-    reconstruct_frames(cfg("device=cpu", "temporal.l2=0"), tmp_path / "free")
-    reconstruct_frames(cfg("device=cpu", "temporal.l2=0", "temporal.tv=0.3"), tmp_path / "tied")
+    run_frames(cfg("device=cpu", "temporal.l2=0"), tmp_path / "free")
+    run_frames(cfg("device=cpu", "temporal.l2=0", "temporal.tv=0.3"), tmp_path / "tied")
     assert step_change(tmp_path / "tied") < 0.5 * step_change(tmp_path / "free")
 
 
@@ -73,7 +73,7 @@ def test_bad_frames_and_unsupported_options_are_refused(tmp_path):
                              (["select.auto=true"], "select.auto"),
                              (["temporal.l2=0.1", "temporal.motion=optical"], "temporal.motion")):
         try:
-            reconstruct_frames(cfg(*overrides), tmp_path)
+            run_frames(cfg(*overrides), tmp_path)
         except ConfigError as err:
             assert str(err).startswith(field + ":"), err
         else:
@@ -87,9 +87,39 @@ def test_bad_frames_and_unsupported_options_are_refused(tmp_path):
 
 def test_each_frame_goes_through_the_runs_debias_step(tmp_path):
     """A joint solve keeps the single run's steps after the solve: each frame gets its own gain."""
-    reconstruct_frames(cfg("device=cpu", "debias.method=gain"), tmp_path / "run")
+    run_frames(cfg("device=cpu", "debias.method=gain"), tmp_path / "run")
     for t in range(3):
         metrics = json.loads((tmp_path / "run" / "frames" / f"{t:06d}" / "metrics.json").read_text())
         record = metrics["solver"]["debias"]
         assert record["method"] == "gain" and len(record["gain"]) == 3  # one per colour channel
         assert all(g > 1.0 for g in record["gain"])  # tv and L1 shrink: the unbiased level is higher
+
+
+def test_the_python_api_solves_frames_jointly_as_the_cli_does(tmp_path):
+    """fr.reconstruct_frames takes typed options and no Hydra: the same densities, bit for bit,
+    as the run layer's scene.frames run (whose folders hold them after the same debias)."""
+    from omegaconf import OmegaConf
+
+    from flamerecon.run.config import options_from_config
+
+    composed = cfg("device=cpu", "temporal.l2=0.02")
+    run_frames(composed, tmp_path / "run")
+    scene = OmegaConf.to_container(composed.scene, resolve=True)
+    scene.pop("frames")
+    code = (
+        "import sys, json, numpy as np, flamerecon as fr\n"
+        "scene, options = json.loads(sys.argv[1]), json.loads(sys.argv[2])\n"
+        "scenes = [fr.load_scene({**scene, 'frame': t}) for t in range(3)]\n"
+        "o = fr.ReconstructionOptions.from_dict(options)\n"
+        "rec = fr.reconstruct_frames(scenes, o, fr.JointFramesOptions(l2=0.02))\n"
+        "np.save(sys.argv[3], np.stack([f.density.cpu().numpy() for f in rec.frames]))\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))\n")
+    options = options_from_config(composed).as_dict()
+    done = subprocess.run([sys.executable, "-c", code, json.dumps(scene), json.dumps(options),
+                           str(tmp_path / "api.npy")],
+                          check=False, cwd=REPO, env=repo_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+    api = np.load(tmp_path / "api.npy")
+    for t in range(3):
+        np.testing.assert_array_equal(api[t], load_density(tmp_path / "run" / "frames" / f"{t:06d}").density)

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from flamerecon.pipeline import reconstruct
+from flamerecon.run.pipeline import reconstruct
 from tests.helpers import tiny_config
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from .base import LinearOperator
-from .sparse import CsrOperator
+from flamerecon.operators.base import LinearOperator
+from flamerecon.operators.sparse import CsrOperator
 
 
 def forward_neighbours(grid_shape: tuple[int, int, int], voxel_index: torch.Tensor) -> torch.Tensor:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from ..options import plain
-from .base import Scene, SceneError
+from flamerecon.plain import plain
+from flamerecon.scenes.base import Scene, SceneError
 
 #: scene name -> loader taking the ``scene`` config node (a mapping) and returning a Scene.
 SCENE_LOADERS: dict[str, Callable[..., Scene]] = {}
@@ -22,7 +22,7 @@ def register_scene(name: str):
 def load_scene(cfg) -> Scene:
     """Load the scene described by the ``scene`` config node (needs ``cfg.name``); the scene
     keeps the node as plain Python in ``meta["config"]`` (see :func:`load_frame`)."""
-    from . import nerf, opencv_calib, pinf, synthetic  # noqa: F401  (registers built-in loaders)
+    from flamerecon.scenes import nerf, opencv_calib, pinf, synthetic  # noqa: F401  (registers built-in loaders)
 
     name = cfg["name"]
     if name not in SCENE_LOADERS:

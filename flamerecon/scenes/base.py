@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 import torch
 from kornia.geometry.camera import PinholeCamera
 
-from ..errors import FlameReconError
-from ..grid import VoxelGrid
-from ..photometry import delinearize
+from flamerecon.errors import FlameReconError
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.photometry import delinearize
 
 
 class SceneError(FlameReconError, ValueError):

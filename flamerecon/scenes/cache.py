@@ -25,8 +25,8 @@ from types import ModuleType
 import kornia
 import torch
 
-from .. import __version__
-from ..atomic import atomic_write_bytes
+from flamerecon.outputs.atomic import atomic_write_bytes
+from flamerecon.resources import __version__
 
 log = logging.getLogger(__name__)
 

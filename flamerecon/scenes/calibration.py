@@ -15,12 +15,12 @@ import cv2
 import numpy as np
 import torch
 
-from ..cameras import make_cameras
-from ..photometry import linearize
-from ..resources import checkout_root
-from ..silhouettes import estimate_bbox, silhouettes
-from .base import Scene, SceneError
-from .frames import is_link_loop
+from flamerecon.geometry.cameras import make_cameras
+from flamerecon.geometry.photometry import linearize
+from flamerecon.geometry.silhouettes import estimate_bbox, silhouettes
+from flamerecon.resources import checkout_root
+from flamerecon.scenes.base import Scene, SceneError
+from flamerecon.scenes.frames import is_link_loop
 
 
 def option(cfg, key: str, default=None):
@@ -33,7 +33,7 @@ def resolve_root(root, field: str = "scene.root") -> Path:
     """The data folder (or file) named by ``root``.
 
     An absolute path is taken as is. A relative one is tried against the working directory
-    (the run layer, :func:`flamerecon.runner.anchor_scene_root`, has already made absolute a
+    (the run layer, :func:`flamerecon.run.runner.anchor_scene_root`, has already made absolute a
     root found under the folder the command was started in), then against the repository root
     when the package runs from a checkout.
     """
@@ -269,7 +269,7 @@ def box_from_value(value, file, field: str):
 
 
 def silhouette_options(cfg) -> dict:
-    """Keyword arguments for :func:`~flamerecon.silhouettes.silhouettes` from the config."""
+    """Keyword arguments for :func:`~flamerecon.geometry.silhouettes.silhouettes` from the config."""
     node = option(cfg, "silhouette", {}) or {}
     keys = ("method", "threshold", "dilate_px", "blur_px", "speck_px", "close_px")
     return {k: node[k] for k in keys if k in node and node[k] is not None}

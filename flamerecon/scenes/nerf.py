@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import opengl_c2w_to_opencv_w2c
-from . import register_scene
-from .base import Scene, SceneError
-from .calibration import (
+from flamerecon.geometry.cameras import opengl_c2w_to_opencv_w2c
+from flamerecon.scenes import register_scene
+from flamerecon.scenes.base import Scene, SceneError
+from flamerecon.scenes.calibration import (
     box_from_value,
     check_image_size,
     check_rigid,
@@ -39,7 +39,7 @@ from .calibration import (
     resolve_root,
     undistort,
 )
-from .frames import read_path_frame
+from flamerecon.scenes.frames import read_path_frame
 
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 

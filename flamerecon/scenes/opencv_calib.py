@@ -30,9 +30,9 @@ import cv2
 import numpy as np
 import yaml
 
-from . import register_scene
-from .base import Scene, SceneError
-from .calibration import (
+from flamerecon.scenes import register_scene
+from flamerecon.scenes.base import Scene, SceneError
+from flamerecon.scenes.calibration import (
     box_from_value,
     check_image_size,
     check_intrinsics,
@@ -44,7 +44,7 @@ from .calibration import (
     resolve_root,
     undistort,
 )
-from .frames import read_camera_frame, read_path_frame
+from flamerecon.scenes.frames import read_camera_frame, read_path_frame
 
 CALIBRATION_SUFFIXES = (".yaml", ".yml", ".xml", ".json")
 _ALIASES = {

@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..cameras import opengl_c2w_to_opencv_w2c
-from . import register_scene
-from .base import Scene, SceneError
-from .calibration import (
+from flamerecon.geometry.cameras import opengl_c2w_to_opencv_w2c
+from flamerecon.scenes import register_scene
+from flamerecon.scenes.base import Scene, SceneError
+from flamerecon.scenes.calibration import (
     check_image_size,
     check_rigid,
     make_scene,
@@ -33,7 +33,7 @@ from .calibration import (
     read_json_object,
     resolve_root,
 )
-from .frames import read_camera_frame
+from flamerecon.scenes.frames import read_camera_frame
 
 
 def pinf_box(info: dict, file) -> tuple[tuple, tuple] | None:

@@ -14,15 +14,15 @@ import sys
 import torch
 import torch.nn.functional as F
 
-from ..cameras import intrinsics_matrix, look_at, make_cameras
-from ..grid import VoxelGrid
-from ..projector import render_image
-from . import register_scene
-from .base import Scene, SceneError
-from .cache import cached
+from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators.projector import render_image
+from flamerecon.scenes import register_scene
+from flamerecon.scenes.base import Scene, SceneError
+from flamerecon.scenes.cache import cached
 
 #: the modules whose code makes the rendered scene (part of its cache key)
-_RENDER_CODE = ("flamerecon.scenes.synthetic", "flamerecon.projector", "flamerecon.grid", "flamerecon.cameras")
+_RENDER_CODE = ("flamerecon.scenes.synthetic", "flamerecon.operators.projector", "flamerecon.geometry.grid", "flamerecon.geometry.cameras")
 
 BOX_MIN = (-0.5, 0.0, -0.5)
 BOX_MAX = (0.5, 1.5, 0.5)
@@ -168,5 +168,5 @@ def load(cfg) -> Scene:
         name="synthetic", views=views, cameras=cams, images=images,
         bbox_min=BOX_MIN, bbox_max=BOX_MAX, default_holdout=[views[-1]],
         truth=truth, truth_grid=truth_grid, source=f"synthetic flame (seed {seed}, frame {frame})",
-        meta={"noise": sigma, "time": frame * SECONDS_PER_FRAME},
+        meta={"frame": frame, "noise": sigma, "time": frame * SECONDS_PER_FRAME},
     )

@@ -1,7 +1,18 @@
 """Solvers for the nonnegative LASSO, registered by name (``solver=<name>``)."""
 
-from . import adam, cgls, fista, fista_smooth, lars, lbfgsb, newton_cg, pqn, primal_dual_tv, sart  # noqa: F401  (registers)
-from .base import (
+from flamerecon.solvers import (  # noqa: F401  (registers)
+    adam,
+    cgls,
+    fista,
+    fista_smooth,
+    lars,
+    lbfgsb,
+    newton_cg,
+    pqn,
+    primal_dual_tv,
+    sart,
+)
+from flamerecon.solvers.base import (
     SOLVERS,
     LinearOperator,
     Problem,

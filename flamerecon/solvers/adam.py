@@ -8,7 +8,7 @@ import math
 
 import torch
 
-from .base import Problem, Solver, density_scale, duality_gap, register
+from flamerecon.solvers.base import Problem, Solver, density_scale, duality_gap, register
 
 
 @register("adam")

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..operators.base import LinearOperator, norm_sq
+from flamerecon.operators.base import LinearOperator, norm_sq
 
 
 @dataclass

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Problem, Solver, register
+from flamerecon.solvers.base import Problem, Solver, register
 
 
 @register("cgls")

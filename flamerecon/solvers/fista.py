@@ -5,7 +5,15 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
+from flamerecon.solvers.base import (
+    Callback,
+    Problem,
+    Solver,
+    SolveResult,
+    duality_gap,
+    power_norm_sq,
+    register,
+)
 
 
 @register("fista")

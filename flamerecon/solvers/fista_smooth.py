@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import torch
 
-from ..operators import StackedOperator, hull_gradient
-from .base import Problem, power_norm_sq, register
-from .fista import Fista
-from .pqn import ProjectedQuasiNewton
+from flamerecon.operators import StackedOperator, hull_gradient
+from flamerecon.solvers.base import Problem, power_norm_sq, register
+from flamerecon.solvers.fista import Fista
+from flamerecon.solvers.pqn import ProjectedQuasiNewton
 
 
 class SmoothnessPrior:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, LinearOperator, Problem, Solver, SolveResult, register
+from flamerecon.solvers.base import Callback, LinearOperator, Problem, Solver, SolveResult, register
 
 
 def gram_matrix(A: LinearOperator, like: torch.Tensor, block: int = 256) -> torch.Tensor:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .base import Callback, Problem, Solver, SolveResult, duality_gap, register
+from flamerecon.solvers.base import Callback, Problem, Solver, SolveResult, duality_gap, register
 
 
 class _Stop(Exception):

@@ -11,8 +11,16 @@ from __future__ import annotations
 
 import torch
 
-from .base import Callback, Problem, Solver, SolveResult, duality_gap, power_norm_sq, register
-from .fista import Fista
+from flamerecon.solvers.base import (
+    Callback,
+    Problem,
+    Solver,
+    SolveResult,
+    duality_gap,
+    power_norm_sq,
+    register,
+)
+from flamerecon.solvers.fista import Fista
 
 
 def column_norms_sq(A, M: int, dtype, device) -> torch.Tensor:

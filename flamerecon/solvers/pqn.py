@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from .base import Problem, Solver, duality_gap, register
+from flamerecon.solvers.base import Problem, Solver, duality_gap, register
 
 
 @register("pqn")

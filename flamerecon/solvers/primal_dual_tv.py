@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import torch
 
-from ..operators import HullGradient
-from .base import Problem, Solver, lambda_max, power_norm_sq, register
+from flamerecon.operators import HullGradient
+from flamerecon.solvers.base import Problem, Solver, lambda_max, power_norm_sq, register
 
 
 def total_variation(d: torch.Tensor) -> torch.Tensor:

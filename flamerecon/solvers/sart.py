@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from .base import Problem, Solver, register
+from flamerecon.solvers.base import Problem, Solver, register
 
 
 @register("sart")

@@ -6,8 +6,8 @@ import math
 
 import torch
 
-from flamerecon.grid import VoxelGrid
-from flamerecon.projector import Rays
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators.projector import Rays
 
 
 def random_rays(grid: VoxelGrid, n: int, seed: int = 0, radius: float = 3.0) -> Rays:
@@ -24,7 +24,7 @@ def random_rays(grid: VoxelGrid, n: int, seed: int = 0, radius: float = 3.0) -> 
 
 def ring_of_cameras(n: int, width: int, height: int, target, radius: float = 3.0, focal=None):
     """``n`` look-at cameras on a horizontal ring (world y up) around ``target``."""
-    from flamerecon.cameras import intrinsics_matrix, look_at, make_cameras
+    from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
 
     target = torch.as_tensor(target, dtype=torch.float32)
     a = torch.arange(n, dtype=torch.float32) * 2 * math.pi / n

@@ -7,7 +7,7 @@ import signal
 
 
 def interrupt_at(iteration: int, tag_root: str = ""):
-    """A ``watch`` for :func:`flamerecon.pipeline.reconstruct` that sends this process a SIGINT
+    """A ``watch`` for :func:`flamerecon.run.pipeline.reconstruct` that sends this process a SIGINT
     at solver check ``iteration`` of the solve logged under ``tag_root`` (``""``: the final
     grid, ``level<i>/``: coarse level i, ``refit<r>/``: photometry refit r); the run's handler
     then checkpoints and stops."""

@@ -10,9 +10,9 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 from omegaconf import OmegaConf
 
+from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.scenes import SCENE_LOADERS, register_scene
 from flamerecon.scenes.synthetic import load as load_synthetic
-from flamerecon.silhouettes import silhouettes
 
 from .config import FAST, tiny_config
 

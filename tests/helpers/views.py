@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import torch
 
-from flamerecon.cameras import look_at
+from flamerecon.geometry.cameras import look_at
 
 WIDTH, HEIGHT = 40, 32
 NAMES = ["cam00", "cam01", "cam02", "cam03"]

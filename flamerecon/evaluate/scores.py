@@ -1,0 +1,172 @@
+"""How well a density predicts views: renders of a scene's cameras scored against what they
+recorded (PSNR, SSIM, the all-black floor), inside the silhouette union of the captured and the
+rendered view, and at the capture's native resolution (the scene loaded again with
+``scene.downscale=1``, rendered only where the density can reach); ``renders/`` panels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from flamerecon.evaluate.metrics import psnr, psnr_aligned, resample_to, ssim, volume_errors
+from flamerecon.geometry.cameras import camera_subset, cameras_to
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.photometry import apply_gain_offset
+from flamerecon.geometry.silhouettes import silhouettes
+from flamerecon.operators.projector import (
+    camera_rays,
+    integrate_dense,
+    ray_box,
+    render_image,
+    support_box,
+)
+from flamerecon.outputs.atomic import atomic_write_bytes, make_folder
+from flamerecon.outputs.figures import side_by_side
+from flamerecon.outputs.names import file_stems
+from flamerecon.scenes import Scene, load_scene
+from flamerecon.scenes.calibration import downscale_factor
+
+
+def silhouette_union(rendered: torch.Tensor, scene: Scene, views: list[int],
+                     options: dict) -> torch.Tensor:
+    """(V, H, W) bool: where the captured view or the rendering shows flame, both by the
+    silhouette ``options`` (the run's ``silhouette:`` node); the scene's own masks, when it
+    has them, stand for the captured silhouettes."""
+    if scene.masks is not None:
+        captured = scene.masks[views].cpu()
+    else:
+        captured = silhouettes(scene.images[views], **options).cpu()
+    return captured | silhouettes(rendered.clamp(0, 1), **options).cpu()
+
+
+def masked_scores(rendered: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
+    """PSNR of rendered (C, H, W) against captured inside ``mask`` (H, W) bool, and of a black
+    image there: ``psnr_silhouette`` and ``psnr_black_silhouette``."""
+    r, c = rendered[:, mask], captured[:, mask]  # (C, P)
+    return {"psnr_silhouette": psnr(r, c), "psnr_black_silhouette": psnr(torch.zeros_like(c), c)}
+
+
+def render_support(volume: torch.Tensor, grid: VoxelGrid, cams, step: float) -> torch.Tensor:
+    """Render every pixel of every camera like :func:`~flamerecon.operators.projector.render_image`, one
+    camera at a time and marching only rays that cross the box of the nonzero density, so
+    that full-resolution frames fit in memory: volume (C, nz, ny, nx) -> (B, C, H, W) on CPU."""
+    C = volume.shape[0]
+    support = volume.detach().abs().sum(0).reshape(-1).nonzero().squeeze(1)
+    box = support_box(grid, support)
+    H, W = int(cams.height[0]), int(cams.width[0])
+    out = torch.zeros(cams.batch_size, C, H * W)
+    for b in range(cams.batch_size):
+        rays, _ = camera_rays(camera_subset(cams, [b]))
+        near, far = ray_box(rays, *box)
+        hit = (far > near).nonzero().squeeze(1)
+        if hit.numel():
+            with torch.no_grad():
+                out[b][:, hit.cpu()] = integrate_dense(volume, grid, rays[hit], step, box).T.cpu()
+    return out.reshape(cams.batch_size, C, H, W)
+
+
+def native_scene(scene_cfg: Mapping) -> Scene | None:
+    """The scene at native resolution (``scene.downscale=1``), or None when the run already
+    works at it (or its scene has no ``downscale``)."""
+    if downscale_factor(scene_cfg) == 1:
+        return None
+    return load_scene({**scene_cfg, "downscale": 1})
+
+
+def native_scores(scene_cfg: Mapping, volume: torch.Tensor, grid: VoxelGrid, names: list[str],
+                  step: float) -> tuple[dict[str, dict[str, float]], tuple[int, int]] | None:
+    """Per held-out view name: ``psnr_native``, ``ssim_native`` and ``psnr_black_native`` over
+    the full native frame, and the native (width, height); None when there is nothing to add."""
+    scene = native_scene(scene_cfg)
+    if scene is None:
+        return None
+    views = [scene.views.index(n) for n in names]
+    cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
+    rendered = render_support(volume, grid, cams, step)
+    out = {}
+    for img, v in zip(rendered, views):
+        img, captured = scene.to_recorded(img), scene.recorded_view(v)
+        out[scene.views[v]] = {
+            "psnr_native": psnr(img, captured),
+            "ssim_native": ssim(img, captured),
+            "psnr_black_native": psnr(torch.zeros_like(captured), captured),
+        }
+    H, W = scene.image_size
+    return out, (W, H)
+
+
+def render_scene_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
+    """Rendered images (len(views), C, H, W) of the density for the given view indices."""
+    cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
+    return render_image(volume, grid, cams, step).cpu()
+
+
+def view_psnr(rendered: torch.Tensor, scene: Scene, view: int) -> float:
+    """Full-frame PSNR of one render (C, H, W) against view ``view``, in recorded units: the
+    ``psnr`` of :func:`score_views` alone (the monitor's; the full scores cost about a render)."""
+    return psnr(scene.to_recorded(rendered), scene.recorded_view(view))
+
+
+def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
+                masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
+    """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against
+    the captured image, and the PSNR of an all-black prediction (the floor that gives a number its meaning); with ``masks``
+    (V, H, W) bool also both PSNRs inside them (see :func:`masked_scores`)."""
+    out = {}
+    for k, (img, v) in enumerate(zip(rendered, views)):
+        img, captured = scene.to_recorded(img), scene.recorded_view(v)
+        out[scene.views[v]] = {
+            "psnr": psnr(img, captured),
+            "ssim": ssim(img, captured),
+            "psnr_black": psnr(torch.zeros_like(captured), captured),
+            "psnr_aligned": psnr_aligned(img, captured),
+        }
+        if masks is not None:
+            out[scene.views[v]].update(masked_scores(img, captured, masks[k]))
+    return out
+
+
+def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
+    """renders/<view>.png: rendered | captured | |error| x4, one per held-out view (the view
+    name made a safe, unique file name, :func:`~flamerecon.outputs.names.file_stems`)."""
+    folder = make_folder(run_dir / "renders")
+    stems = file_stems(scene.views)
+    for img, v in zip(rendered, views):
+        panel = side_by_side(img, scene.images[v]).permute(1, 2, 0).numpy()
+        ok, png = cv2.imencode(".png", (panel[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        if not ok:
+            raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")
+        atomic_write_bytes(folder / f"{stems[v]}.png", png.tobytes())
+
+
+def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
+          step: float, silhouette: dict | None = None,
+          photometry: dict[str, tuple[float, float]] | None = None) -> tuple[dict, torch.Tensor]:
+    """Metrics of a density (C, nz, ny, nx): held-out and training views (with ``silhouette``
+    options also inside the silhouette union; training renders through each camera's
+    ``photometry`` (gain, offset) when given), volume errors against the truth when the
+    scene has one. Returns (metrics, held-out renders)."""
+    held_imgs = render_scene_views(volume, grid, scene, holdout, step)
+    train_imgs = render_scene_views(volume, grid, scene, train, step)
+    if photometry:
+        gain = torch.tensor([photometry[scene.views[v]][0] for v in train])
+        offset = torch.tensor([photometry[scene.views[v]][1] for v in train])
+        train_imgs = apply_gain_offset(train_imgs, gain, offset)
+    held_masks = train_masks = None
+    if silhouette is not None:
+        held_masks = silhouette_union(held_imgs, scene, holdout, silhouette)
+        train_masks = silhouette_union(train_imgs, scene, train, silhouette)
+    metrics = {"heldout": score_views(held_imgs, scene, holdout, held_masks),
+               "train": score_views(train_imgs, scene, train, train_masks)}
+    if scene.truth is not None:
+        truth = resample_to(scene.truth, grid.shape) if scene.truth_grid is not None and (
+            scene.truth_grid.bbox_min == grid.bbox_min and scene.truth_grid.bbox_max == grid.bbox_max
+        ) else None
+        if truth is not None:
+            metrics["volume"] = volume_errors(volume.cpu(), truth)
+    return metrics, held_imgs

@@ -1,0 +1,238 @@
+"""Refuse unusable input before the work starts, with a message that says how to fix it.
+
+Each check raises a :class:`~flamerecon.errors.FlameReconError` whose one-line message names
+the scene's file (``Scene.source``) or the config field at fault and what to try.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+from kornia.geometry.camera import PinholeCamera
+
+from flamerecon.errors import ConfigError, HullError, MemoryBudgetError
+from flamerecon.fit.memory import available_bytes, format_bytes
+from flamerecon.geometry.cameras import K_of, pixel_rays
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.hull import carve_counts
+from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
+from flamerecon.scenes import Scene, SceneError
+
+log = logging.getLogger(__name__)
+
+#: share of the free memory a run may plan to use when ``projector.max_memory_gb`` is unset.
+MEMORY_HEADROOM = 0.8
+#: bytes per voxel of the dense arrays a run holds at once: voxel centres (12), carving (1 per
+#: camera), the hull and its dilation (8), and a few (C=3)-channel float volumes (48).
+DENSE_BYTES_PER_VOXEL = 68
+#: pixels per image side tested for whether a camera sees the box.
+VISIBILITY_LATTICE = 64
+
+
+def _where(scene: Scene) -> str:
+    return scene.source or f"scene '{scene.name}'"
+
+
+def check_scene(scene: Scene, grid: VoxelGrid) -> None:
+    """Shapes agree, images are finite, K and the rotations are sane, every camera sees the box.
+
+    Loaders name their own file's fields; this catches what any loader could let through.
+    """
+    where = _where(scene)
+    cams = scene.cameras
+    B = scene.images.shape[0]
+    if scene.images.ndim != 4:
+        raise SceneError(f"{where}: images must be (views, channels, H, W), got {tuple(scene.images.shape)}")
+    if not (B == len(scene.views) == cams.batch_size):
+        raise SceneError(
+            f"{where}: {B} images, {len(scene.views)} view names and {cams.batch_size} cameras; "
+            "each view needs one of each"
+        )
+    H, W = scene.image_size
+    for i, name in enumerate(scene.views):
+        ch, cw = int(cams.height[i]), int(cams.width[i])
+        if (ch, cw) != (H, W):
+            raise SceneError(
+                f"{where}: view '{name}': the image is {W}x{H} but its calibration says {cw}x{ch} "
+                "(width, height); rescale K with the image or fix the calibration"
+            )
+    bad = (~torch.isfinite(scene.images)).flatten(1).sum(1)
+    for i in bad.nonzero().flatten().tolist():
+        raise SceneError(
+            f"{where}: view '{scene.views[i]}': the image holds {int(bad[i])} NaN/Inf values; "
+            "repair or drop the frame, or hold the view out"
+        )
+    K = K_of(cams)
+    R = cams.extrinsics[:, :3, :3].double()
+    eye = torch.eye(3, dtype=R.dtype)
+    for i, name in enumerate(scene.views):
+        if not (torch.isfinite(K[i]).all() and torch.isfinite(cams.extrinsics[i]).all()):
+            raise SceneError(f"{where}: view '{name}': K or world_to_camera holds NaN/Inf")
+        if K[i, 0, 0] <= 0 or K[i, 1, 1] <= 0:
+            raise SceneError(
+                f"{where}: view '{name}': K focal lengths must be positive, got "
+                f"fx={float(K[i, 0, 0]):g}, fy={float(K[i, 1, 1]):g}"
+            )
+        err = float((R[i] @ R[i].T - eye).abs().max())
+        if err > 1e-3 or float(torch.linalg.det(R[i])) < 0:
+            raise SceneError(
+                f"{where}: view '{name}': the rotation of world_to_camera is not orthonormal with "
+                f"det +1 (|R R^T - I| = {err:.2g}, det = {float(torch.linalg.det(R[i])):.3g})"
+            )
+    seen = sees_box(cams, grid)
+    for i in (~seen).nonzero().flatten().tolist():
+        lo, hi = [round(v, 4) for v in grid.bbox_min], [round(v, 4) for v in grid.bbox_max]
+        raise SceneError(
+            f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; "
+            "check its world_to_camera (pose, axis convention) or set grid.bbox"
+        )
+
+
+def sees_box(cams: PinholeCamera, grid: VoxelGrid) -> torch.Tensor:
+    """(B,) bool: whether any ray of a lattice of pixels (edges included) meets the grid's box."""
+    B = cams.batch_size
+    H, W = int(cams.height[0]), int(cams.width[0])
+    n = VISIBILITY_LATTICE
+    u = torch.linspace(0.0, float(W), n)
+    v = torch.linspace(0.0, float(H), n)
+    uv = torch.stack(torch.meshgrid(u, v, indexing="xy"), -1).reshape(1, -1, 2).expand(B, -1, -1)
+    origins, dirs = pixel_rays(cams, uv.to(cams.intrinsics.device).contiguous())
+    lo, hi = march_box(grid, origins.device)
+    t_near, t_far = ray_box(Rays(origins.reshape(-1, 3), dirs.reshape(-1, 3)), lo, hi)
+    return (t_far > t_near).reshape(B, -1).any(1).cpu()
+
+
+def memory_budget(device: torch.device, max_memory_gb: float | None) -> int | None:
+    """Bytes a run may plan to use: ``projector.max_memory_gb`` when set, else
+    :data:`MEMORY_HEADROOM` of what ``device`` has free (None where that is unknown)."""
+    if max_memory_gb is not None:
+        return int(float(max_memory_gb) * 2**30)
+    free = available_bytes(device)
+    return None if free is None else int(MEMORY_HEADROOM * free)
+
+
+def check_grid_memory(grid: VoxelGrid, n_views: int, device: torch.device, budget: int | None) -> None:
+    """Refuse a grid whose dense arrays alone would not fit in ``budget`` bytes."""
+    need = grid.num_voxels * (DENSE_BYTES_PER_VOXEL + n_views)
+    if budget is not None and need > budget:
+        nx, ny, nz = grid.resolution
+        raise MemoryBudgetError(
+            f"grid.resolution: a {nx}x{ny}x{nz} grid ({grid.num_voxels:.3g} voxels) needs about "
+            f"{format_bytes(need)} for its dense arrays but {format_bytes(budget)} is available on "
+            f"{device}; use a smaller grid.resolution"
+        )
+
+
+def choose_backend(
+    requested: str, grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float,
+    device: torch.device, budget: int | None,
+) -> str:
+    """``projector.backend`` to use: ``auto`` is ``assembled`` when its estimated peak memory
+    fits in ``budget`` bytes, else ``matrix_free``; an explicit ``assembled`` that would not fit
+    is refused with the figures and the alternatives."""
+    if requested == "matrix_free":
+        return requested
+    if requested not in ("auto", "assembled"):
+        raise ConfigError(
+            f"projector.backend: unknown backend '{requested}'; use auto, assembled or matrix_free"
+        )
+    est = assembled_memory(grid, rays, voxel_index, step)
+    if budget is None or est.peak_bytes <= budget:
+        return "assembled"
+    figure = (
+        f"the assembled operator for {len(rays)} rays x {int(voxel_index.numel())} hull voxels "
+        f"needs about {format_bytes(est.operator_bytes)} (~{est.nnz:.3g} nonzeros, A and A^T) and "
+        f"about {format_bytes(est.peak_bytes)} while it is built, but {format_bytes(budget)} is "
+        f"available on {device}"
+    )
+    if requested == "auto":
+        log.warning("projector.backend=auto: %s; using the matrix-free backend", figure)
+        return "matrix_free"
+    nx, ny, nz = grid.resolution
+    raise MemoryBudgetError(
+        f"projector.backend=assembled: {figure}; use projector.backend=matrix_free (or auto), a "
+        f"smaller grid.resolution (now {nx}x{ny}x{nz}) or coarser images (scene.downscale=2)"
+    )
+
+
+def check_silhouettes(scene: Scene, masks: torch.Tensor, train: list[int], threshold: float) -> None:
+    """Refuse training views whose silhouette ``masks`` (B, H, W) is empty: each would carve
+    away the whole box. Suggests a threshold below the view's brightest pixel."""
+    where = _where(scene)
+    empty = [v for v in train if not bool(masks[v].any())]
+    if not empty:
+        return
+    brightest = {v: float(scene.images[v].amax()) for v in empty}
+    names = [scene.views[v] for v in empty]
+    hint = 0.5 * min(brightest.values())
+    what = (
+        "no training view has a pixel above it" if len(empty) == len(train)
+        else f"the silhouette of view(s) {names} is empty, so they would carve away the whole box"
+    )
+    fix = (f"try silhouette.threshold={hint:.3g}" if hint > 0
+           else f"view '{names[0]}' is black: check its image file")
+    raise HullError(
+        f"{where}: silhouette.threshold={threshold:g}: {what} (brightest pixel "
+        f"{max(brightest.values()):.3g}); {fix}"
+        + ("" if len(empty) == len(train) else f" or hold those views out (holdout=[...{names[0]}])")
+    )
+
+
+def explain_empty_hull(
+    scene: Scene, grid: VoxelGrid, cams: PinholeCamera, masks: torch.Tensor, train: list[int],
+    threshold: float, margin_voxels: int,
+) -> HullError:
+    """The error for an empty visual hull: which training camera carves away the voxels all the
+    others keep, and the silhouette threshold / hull margin to try."""
+    carved = carve_counts(grid, cams, masks)  # (B, nz, ny, nx)
+    alone = (carved & (carved.sum(0) == 1)[None]).flatten(1).sum(1)  # voxels only b carves
+    b = int(alone.argmax())
+    name = scene.views[train[b]]
+    cover = float(masks[b].float().mean())
+    if int(alone[b]) > 0:
+        culprit = (
+            f"camera '{name}' alone carves away the {int(alone[b])} voxels every other camera "
+            f"keeps (its silhouette covers {100 * cover:.1f}% of its image)"
+        )
+    else:
+        culprit = "no single camera is to blame: the silhouettes do not overlap inside the box"
+    return HullError(
+        f"{_where(scene)}: the visual hull on the {'x'.join(map(str, grid.resolution))} grid is "
+        f"empty; {culprit}; try silhouette.threshold={0.5 * threshold:.3g} (now {threshold:g}) or "
+        f"hull.margin_voxels={margin_voxels + 2} (now {margin_voxels}), or check that view's "
+        "calibration"
+    )
+
+
+def check_density_fits(path, density, scene: Scene, grid: VoxelGrid, config_file) -> None:
+    """Refuse to score a saved density (:class:`~flamerecon.outputs.export.Density`) against a scene it
+    was not made for: its channels, fitted views and grid (box and cells) must be those of
+    ``scene`` and of ``grid``, the grid the run's config (``config_file``) gives."""
+    from flamerecon.outputs.export import DensityFileError
+
+    C = int(density.density.shape[0])
+    if C != int(scene.images.shape[1]):
+        raise DensityFileError(
+            f"{path}: field 'density' has {C} channel(s) but scene '{scene.name}' of {config_file} "
+            f"has {int(scene.images.shape[1])}; the density was made for another scene (two runs "
+            "into one folder?): evaluate the folder the density was written in"
+        )
+    unknown = [v for v in density.views if v not in scene.views]
+    if unknown:
+        raise DensityFileError(
+            f"{path}: field 'views': the density was fitted to views {unknown} that scene "
+            f"'{scene.name}' of {config_file} does not have ({scene.views}); it was made for another scene"
+        )
+    shape = tuple(int(n) for n in density.density.shape[1:])
+    same_box = np.allclose(density.bbox_min, grid.bbox_min) and np.allclose(density.bbox_max, grid.bbox_max)
+    if shape != tuple(grid.shape) or not same_box:
+        nz, ny, nx = shape
+        lo, hi = ([round(float(v), 4) for v in box] for box in (density.bbox_min, density.bbox_max))
+        glo, ghi = ([round(float(v), 4) for v in box] for box in (grid.bbox_min, grid.bbox_max))
+        raise DensityFileError(
+            f"{path}: field 'density' is a {nx}x{ny}x{nz} grid over the box {lo}..{hi} but "
+            f"{config_file} gives {'x'.join(map(str, grid.resolution))} cells over {glo}..{ghi}; "
+            "the density and the config come from different runs"
+        )

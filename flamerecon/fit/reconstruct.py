@@ -1,0 +1,451 @@
+"""reconstruct(scene, options): the one orchestration path of a reconstruction — camera
+refinement, warm start, coarse grid levels, weight selection, the solve, photometry refits and
+debiasing. Every solve of it (coarse levels, the final grid, each refit) goes through a
+:class:`SolveHook`; the run layer's hook adds the run folder, TensorBoard, checkpoints, resume
+and the divergence guard (:mod:`flamerecon.run.hook`), the default one just solves."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import torch
+
+from flamerecon.device import resolve_device
+from flamerecon.errors import ConfigError
+from flamerecon.evaluate.scores import score
+from flamerecon.fit.build import (
+    Setup,
+    build,
+    check_solver_name,
+    hull_values,
+    init_volume,
+    make_problem,
+    scene_grid,
+    scene_masks,
+    split_views,
+)
+from flamerecon.fit.capture_calibration import capture_refinement
+from flamerecon.fit.debias import DebiasOptions, debias
+from flamerecon.fit.levels import level_grids, level_iters
+from flamerecon.fit.options import ReconstructionOptions
+from flamerecon.fit.refine_cameras import CalibrationFrame, correction_report, refine, with_cameras
+from flamerecon.fit.weight_selection import select_weights
+from flamerecon.geometry.cameras import camera_subset, cameras_to
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
+from flamerecon.scenes import Scene
+from flamerecon.solvers import Problem, Solver, SolveResult
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """Which solve of a reconstruction: grid ``level`` (0 = coarsest; ``levels`` = the final
+    grid) and ``round`` (0: the solve, r >= 1: photometry refit r on the final grid)."""
+
+    level: int
+    levels: int
+    round: int = 0
+
+    @property
+    def final(self) -> bool:
+        return self.level == self.levels
+
+    @property
+    def tag_root(self) -> str:
+        """TensorBoard tag prefix: ``""`` for the final grid's solve, ``refit<r>/`` for its
+        photometry refit r, ``level<i>/`` for coarse level i."""
+        if not self.final:
+            return f"level{self.level}/"
+        return f"refit{self.round}/" if self.round else ""
+
+    def __str__(self) -> str:
+        where = "the final grid" if self.final else f"coarse level grid.levels[{self.level}]"
+        return where + (f", photometry refit {self.round}" if self.round else "")
+
+
+@dataclass
+class ResumePoint:
+    """Where an interrupted reconstruction continues: the stage its checkpoint was written in
+    and the ``carry`` the core handed to that stage's solve."""
+
+    level: int
+    round: int = 0
+    carry: dict = field(default_factory=dict)
+
+
+class SolveHook:
+    """What every solve of :func:`reconstruct` goes through. This one solves and nothing
+    else; the run layer's (:class:`flamerecon.run.hook.RunHook`) monitors, checkpoints,
+    guards and resumes.
+
+    :meth:`solve` gets the stage, its problem and solver, the warm start ``x0`` (M, C) or None,
+    and ``carry``: what the core needs to continue after this stage if it is resumed (a hook
+    that checkpoints stores it). A hook may stop a solve early: it then returns the last good
+    iterate with ``SolveResult.stopped`` set, and the reconstruction ends after that stage.
+    """
+
+    def solve(self, stage: Stage, setup: Setup, problem: Problem, solver: Solver,
+              x0: torch.Tensor | None, carry: dict) -> SolveResult:
+        return solver.solve(problem, x0=x0)
+
+    def resume(self) -> ResumePoint | None:
+        """The stage to continue from (None: start afresh)."""
+        return None
+
+    def joint(self, setups: list[Setup], solve: Callable[[Callable | None], Any]) -> Any:
+        """The joint solve of several frames (:func:`flamerecon.fit.joint_frames.reconstruct_frames`):
+        ``solve(callback)`` runs it and returns its
+        :class:`~flamerecon.solvers.temporal.JointResult`, calling ``callback(iteration, xs,
+        info)`` at every check when one is given; this hook gives none."""
+        return solve(None)
+
+
+@dataclass
+class Photometry:
+    """Per training camera ``image = gain * integral + offset`` (``gain``, ``offset``: (T,))."""
+
+    gain: torch.Tensor
+    offset: torch.Tensor
+    iterations: list[int]  # of each re-solve
+    solve_iterations: int = 0  # of the solve before the first refit
+
+    def per_view(self, setup: Setup) -> dict[str, tuple[float, float]]:
+        """{view name: (gain, offset)} for every view; held-out views get (1, 0)."""
+        out = {name: (1.0, 0.0) for name in setup.scene.views}
+        for k, v in enumerate(setup.train):
+            out[setup.scene.views[v]] = (float(self.gain[k]), float(self.offset[k]))
+        return out
+
+
+@dataclass
+class Fit:
+    """A density fitted on one :class:`~flamerecon.fit.build.Setup`."""
+
+    result: SolveResult  # the last solve (x: the debiased density's hull values (M, C))
+    l1: float  # absolute L1 weight
+    options: ReconstructionOptions  # the options solved with (weights as selected)
+    photometry: Photometry | None = None
+    selection: dict | None = None  # the weight selection's record
+    debias: dict | None = None  # the debiasing's record
+    seconds: dict = field(default_factory=dict)  # wall time: selection, solve, photometry
+
+
+@dataclass
+class Reconstruction:
+    """What :func:`reconstruct` returns: the density on ``setup`` and how it was found."""
+
+    scene: Scene  # with the refined cameras when calibration refinement ran
+    setup: Setup
+    fit: Fit
+    levels: list[dict] = field(default_factory=list)  # one record per grid (with grid.levels)
+    calibration: dict | None = None  # the camera refinement's record
+    timing: dict = field(default_factory=dict)  # wall seconds per step
+
+    @property
+    def options(self) -> ReconstructionOptions:
+        return self.fit.options
+
+    @property
+    def grid(self) -> VoxelGrid:
+        return self.setup.grid
+
+    @property
+    def density(self) -> torch.Tensor:
+        """(C, nz, ny, nx) emission density on :attr:`grid`."""
+        return self.setup.volume(self.fit.result.x)
+
+    @property
+    def stopped(self) -> str | None:
+        """Why the last solve stopped early (the hook's guard), None when it finished."""
+        return self.fit.result.stopped
+
+    def score(self) -> dict:
+        """Metrics of the density: held-out and training PSNR/SSIM (see
+        :func:`flamerecon.evaluate.scores.score`), volume errors when the scene has a truth."""
+        photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
+        metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
+                           self.setup.step, self.options.silhouette.as_dict(), photometry)
+        return metrics
+
+
+def choose_weights(options: ReconstructionOptions, setup: Setup) -> tuple[ReconstructionOptions, dict | None]:
+    """With ``select.auto`` and candidates for the solver: the options with the solver weights
+    that leave-one-view-out over the training views prefers
+    (:func:`~flamerecon.fit.weight_selection.select_weights`), and the selection's record; else
+    ``options`` unchanged and None."""
+    solver = options.solver
+    selection = options.select.for_solver(solver.name)
+    if selection is None:
+        return options, None
+    check_solver_name(solver.name)
+    if len(setup.train) < 2:
+        raise ConfigError(f"select.auto: choosing weights needs at least two training views, "
+                          f"got {len(setup.train)}; set select.auto=false")
+    base = {k: v for k, v in solver.as_dict().items() if k != "name"}
+    images = setup.scene.images[setup.train].to(setup.pixels)
+    energy = (images.double() ** 2).sum((-2, -1))  # (T, C)
+    H, W = setup.scene.image_size
+    try:
+        found = select_weights(solver.name, base, selection, options.debias, setup.operator,
+                               setup.pixels, setup.row_view, energy, H * W,
+                               [setup.scene.views[v] for v in setup.train],
+                               {"grid_shape": setup.grid.shape, "voxel_index": setup.voxel_index})
+    except (TypeError, ValueError) as err:  # a misspelt candidate key, as make_solver says it
+        raise ConfigError(f"select.candidates.{solver.name}: {err}") from err
+    log.info("weights chosen by leave-one-view-out over the training views: %s", found.chosen)
+    return options.replace(solver=solver.with_values(**found.chosen)), found.record()
+
+
+def fit(setup: Setup, options: ReconstructionOptions, x0: torch.Tensor | None = None,
+        hook: SolveHook | None = None, stage: Stage | None = None, carry: dict | None = None) -> Fit:
+    """Fit a density on ``setup``: weights chosen (``select``), the solve, photometry refits
+    (``photometry.fit_gain``), ``debias``; each solve through ``hook`` at ``stage`` (default:
+    the final grid without coarse levels), from ``x0`` (M, C) or 0. ``carry``: what a resumed
+    run needs of the stages before (see :class:`SolveHook`)."""
+    hook = hook or SolveHook()
+    stage = stage or Stage(0, 0)
+    carry = dict(carry or {})
+    resumed = hook.resume()
+    refit_at = resumed.round if resumed is not None and resumed.level == stage.level else 0
+    seconds: dict = {}
+    clock = time.perf_counter()
+    options, selection = choose_weights(options, setup)
+    if selection is not None:
+        seconds["selection"] = time.perf_counter() - clock
+    problem, solver, l1 = make_problem(options.solver, setup)
+    result = None
+    if refit_at == 0:
+        clock = time.perf_counter()
+        result = hook.solve(stage, setup, problem, solver, x0, carry)
+        seconds["solve"] = time.perf_counter() - clock
+        if result.stopped is not None:
+            return Fit(result, l1, options, None, selection, None, seconds)
+    clock = time.perf_counter()
+    restored = resumed.carry["photometry"] if refit_at else None
+    result, photometry = fit_photometry(options, setup, problem, solver, result, hook, stage, carry,
+                                        restored, refit_at)
+    if photometry is not None:
+        seconds["photometry"] = time.perf_counter() - clock
+    debiased = None
+    if result.stopped is None:
+        result.x, debiased = debias(options.debias, setup.operator, setup.pixels, result.x)
+    return Fit(result, l1, options, photometry, selection, debiased, seconds)
+
+
+def fit_photometry(options: ReconstructionOptions, setup: Setup, problem: Problem, solver: Solver,
+                   result: SolveResult | None, hook: SolveHook, stage: Stage, carry: dict,
+                   resumed: dict | None = None, resumed_round: int = 0
+                   ) -> tuple[SolveResult, Photometry | None]:
+    """With ``photometry.fit_gain``: ``photometry.rounds`` times, fit each training camera's
+    gain and offset to the current density's line integrals on its rows (gains normalized to
+    geometric mean 1, so held-out cameras keep gain 1 and offset 0), then solve again, through
+    ``hook``, from the current density on ``(pixels - offset) / gain``. Returns the last solve
+    and the fitted photometry (None when off). ``resumed``: the ``carry["photometry"]`` of the
+    checkpoint written in refit ``resumed_round`` (gain, offset, iterations and seconds
+    before it), whose solve the hook continues (``result``: None)."""
+    opts = options.photometry
+    if not opts.fit_gain:
+        return result, None
+    rounds = int(opts.rounds)
+    if rounds < 1:
+        raise ConfigError(f"photometry.rounds: must be at least 1 when photometry.fit_gain is on, got {rounds}")
+    T = len(setup.train)
+    first = 1 if resumed is None else resumed_round
+    iterations = [] if resumed is None else list(resumed["iterations"])
+    solved = result.iterations if resumed is None else int(resumed["solve_iterations"])
+    seconds = result.seconds if resumed is None else float(resumed["seconds"])
+    gain = offset = None
+    if resumed is not None:
+        gain, offset = (torch.as_tensor(resumed[k]).to(setup.pixels) for k in ("gain", "offset"))
+    for r in range(first, rounds + 1):
+        if not (resumed is not None and r == first):
+            with torch.no_grad():
+                predicted = setup.operator.forward(result.x)
+            gain, offset = fit_gain_offset_rows(predicted, setup.pixels, setup.row_view, T, bool(opts.fit_offset))
+            if not bool((gain > 0).all()):
+                bad = [setup.scene.views[setup.train[k]] for k in (gain <= 0).nonzero().flatten().tolist()]
+                raise ConfigError(f"photometry.fit_gain: cameras {bad} got a gain <= 0 (their images do not "
+                                  "follow the density's line integrals); run with photometry.fit_gain=false")
+            gain = normalize_gains(gain)
+        b = (setup.pixels - offset[setup.row_view, None]) / gain[setup.row_view, None]
+        again = Problem(setup.operator, b, problem.l1, grid_shape=problem.grid_shape,
+                        voxel_index=problem.voxel_index)
+        state = {"gain": gain.cpu(), "offset": offset.cpu(), "iterations": list(iterations), "seconds": seconds,
+                 "solve_iterations": solved}
+        x0 = None if result is None else result.x
+        result = hook.solve(replace(stage, round=r), setup, again, solver, x0, {**carry, "photometry": state})
+        iterations.append(result.iterations)
+        seconds += result.seconds
+        if result.stopped is not None:
+            break
+    result.seconds = seconds
+    return result, Photometry(gain.cpu(), offset.cpu(), iterations, solved)
+
+
+def level_options(options: ReconstructionOptions, max_iters: int | None, cell_ratio: float) -> ReconstructionOptions:
+    """``options`` for a coarse level: ``max_iters`` set to its budget (unchanged for None); an
+    absolute ``solver.l1`` (the final grid's) times ``cell_ratio``, the level's cell volume
+    over the final grid's, the weight under which the coarse problem is the final one restricted
+    to densities constant on the coarse cells (``l1_rel`` needs nothing: max(A^T P) of each
+    level scales the same way)."""
+    change: dict = {}
+    if max_iters is not None:
+        change["max_iters"] = max_iters
+    if options.solver.l1:
+        change["l1"] = float(options.solver.l1) * cell_ratio
+    return options.replace(solver=options.solver.with_values(**change)) if change else options
+
+
+def coarse_levels(scene: Scene, options: ReconstructionOptions, device: torch.device,
+                  volume: torch.Tensor | None = None, first: int = 0, hook: SolveHook | None = None,
+                  records: list[dict] | None = None) -> torch.Tensor | None:
+    """Solve the coarse grids of ``grid.levels`` from ``first`` on, coarsest first, each on its
+    own visual hull and operator (same box, silhouettes and solver, see :func:`level_options`
+    for its L1 weight and iteration budget), each through ``hook``, each starting from the
+    previous density resampled onto it (the first from ``volume``, or 0); each level's record
+    is appended to ``records``. Returns the last level's density (C, nz, ny, nx), or
+    ``volume`` when there are no levels."""
+    hook = hook or SolveHook()
+    records = [] if records is None else records
+    fine = scene_grid(options.grid, scene)
+    grids = level_grids(list(options.grid.levels) or None, fine)
+    budgets = level_iters(options.grid.level_iters, len(grids))
+    for level in range(first, len(grids)):
+        here = level_options(options, budgets[level], fine.num_voxels / grids[level].num_voxels)
+        setup = build(scene, here, device, grids[level])
+        x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
+        problem, solver, l1 = make_problem(here.solver, setup)
+        result = hook.solve(Stage(level, len(grids)), setup, problem, solver, x0, {"level_records": list(records)})
+        records.append(level_record(setup, l1, result))
+        volume = setup.volume(result.x)
+        del setup, result, problem  # free this level's operator before the next is built
+    return volume
+
+
+def level_record(setup: Setup, l1: float, result: SolveResult) -> dict:
+    """One grid level's entry in metrics.json's ``solver.levels``."""
+    return {"resolution": list(setup.grid.resolution), "voxels": int(setup.voxel_index.numel()),
+            "l1": l1, "iterations": result.iterations, "seconds": result.seconds,
+            "setup_seconds": setup.seconds, "objective": result.objective,
+            "converged": result.converged}
+
+
+def warm_start(scene: Scene, options: ReconstructionOptions, device: torch.device, setup: Setup) -> torch.Tensor | None:
+    """x0 (M, C) for the final ``setup`` without a hook: the ``init`` run's density and/or the
+    solutions of ``grid.levels`` (see :func:`coarse_levels`); None for a cold start."""
+    grids = level_grids(list(options.grid.levels) or None, setup.grid)
+    volume = (init_volume(options.init, grids[0] if grids else setup.grid, setup.pixels.shape[1])
+              if options.init else None)
+    volume = coarse_levels(scene, options, device, volume)
+    return None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
+
+
+def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch.device
+                     ) -> tuple[Scene, dict | None]:
+    """With ``calibration.refine`` other than ``none``: ``scene`` with its training cameras
+    refined through the renderer (:func:`~flamerecon.fit.refine_cameras.refine`, each density
+    solve as :func:`build` and :func:`fit` do it, on the grid of ``calibration.resolution``
+    (default: the final grid's), a ``refit`` debias done by the gain) to this frame, or with
+    ``calibration.frames`` to those frames of the capture (once per capture:
+    :func:`~flamerecon.fit.capture_calibration.capture_refinement`), its held-out cameras
+    unchanged, and the record for metrics.json's ``calibration`` (corrections per camera, the
+    scores of this frame's density solved before refinement). ``(scene, None)`` when off."""
+    refining = options.calibration
+    if refining.refine == "none":
+        return scene, None
+    started = time.perf_counter()
+    train, holdout = split_views(scene, options)
+    grid = scene_grid(replace(options.grid, resolution=refining.resolution or options.grid.resolution), scene)
+    step = float(options.projector.step)
+    # the densities the cameras are fitted to: an unpenalised refit would fit part of the
+    # cameras' errors into them (held-out train02, ScalarFlow frame 35: 31.84 dB against 33.23
+    # with the gain), so they keep the penalised structure, only its level debiased
+    fitting = options.replace(debias=DebiasOptions("gain")) if options.debias.method == "refit" else options
+
+    def frame_of(source: Scene) -> CalibrationFrame:
+        images = source.images.to(device)
+
+        def solve_density(views: list[int], cameras) -> torch.Tensor:
+            fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
+            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid)
+            return setup.volume(fit(setup, fold).result.x)
+
+        return CalibrationFrame(images, scene_masks(source, images, options), solve_density)
+
+    this = frame_of(scene)
+    if refining.frames:
+        found = capture_refinement(scene, train, grid, options, device, frame_of)
+        initial = this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
+    else:
+        found = refine(cameras_to(scene.cameras, device), train, [this], grid, refining, step)
+        initial = found.initial_volume
+    refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
+                      meta={**scene.meta, "calibrated_cameras": scene.cameras})
+    before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
+    report = correction_report(camera_subset(scene.cameras, train), camera_subset(refined.cameras, train),
+                               grid, found.corrections.cpu())
+    record = {
+        "refine": refining.refine, "frames": list(refining.frames), "rounds": found.history,
+        "seconds": time.perf_counter() - started,
+        "train_psnr_before": mean_of(before["train"], "psnr"),
+        "heldout_psnr_before": mean_of(before["heldout"], "psnr"),
+        "cameras": {scene.views[v]: r for v, r in zip(train, report)},
+    }
+    return refined, record
+
+
+def mean_of(per_view: dict[str, dict[str, float]], key: str) -> float:
+    """The mean of ``key`` over the views of a metrics table (NaN for none)."""
+    vals = [v[key] for v in per_view.values()]
+    return sum(vals) / len(vals) if vals else math.nan
+
+
+def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook: SolveHook | None = None,
+                device: torch.device | str | None = None, init: torch.Tensor | None = None) -> Reconstruction:
+    """Reconstruct ``scene``: camera refinement (``calibration``), the warm start (``init``, a
+    density (C, nz', ny', nx') on the grid's box such as the previous frame's, else
+    ``options.init``'s run), the coarse levels (``grid.levels``), then :func:`fit` on the
+    final grid; every solve through ``hook`` (default: solve only). Sets torch's seed and
+    thread count as the options say. Returns the :class:`Reconstruction` (with ``stopped``
+    set when the hook stopped a solve early: the later steps are then skipped)."""
+    options = (options or ReconstructionOptions()).check()
+    hook = hook or SolveHook()
+    check_solver_name(options.solver.name)
+    torch.manual_seed(int(options.seed))
+    if options.threads:
+        torch.set_num_threads(int(options.threads))
+    device = resolve_device(options.device if device is None else str(device))
+    timing: dict = {}
+    clock = time.perf_counter()
+    scene, calibration = calibrated_scene(scene, options, device)
+    if calibration is not None:
+        timing["calibration"] = time.perf_counter() - clock
+    fine = scene_grid(options.grid, scene)
+    grids = level_grids(list(options.grid.levels) or None, fine)
+    level_iters(options.grid.level_iters, len(grids))  # refuse a bad budget before any solve
+    resumed = hook.resume()
+    first = 0 if resumed is None else min(resumed.level, len(grids))
+    records: list[dict] = [] if resumed is None else list(resumed.carry.get("level_records", []))
+    volume = None if resumed is not None else init
+    if volume is None and resumed is None and options.init:
+        volume = init_volume(options.init, grids[0] if grids else fine, int(scene.images.shape[1]))
+    clock = time.perf_counter()
+    volume = coarse_levels(scene, options, device, volume, first, hook, records)
+    if grids:
+        timing["coarse_levels"] = time.perf_counter() - clock
+    setup = build(scene, options, device, fine)
+    timing.update(setup=setup.seconds, assembly=setup.assembly_seconds)
+    x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
+    del volume
+    found = fit(setup, options, x0, hook, Stage(len(grids), len(grids)), {"level_records": list(records)})
+    timing.update(found.seconds)
+    if grids:
+        records.append(level_record(setup, found.l1, found.result))
+    return Reconstruction(scene, setup, found, records, calibration, timing)

@@ -1,0 +1,385 @@
+"""Pictures of a reconstruction: the paper's top view (Fig. 5), renders around the flame
+(Fig. 6), orthogonal slices with a colour bar, turntable video/GIF, visual hull over images.
+
+Images cross this module as ``(H, W, 3) uint8`` RGB arrays (what PNG, video and TensorBoard's
+``dataformats="HWC"`` take); volumes as ``(C, nz, ny, nx)`` arrays or tensors, x fastest.
+Only the slice figure needs matplotlib; everything else uses OpenCV, numpy and Pillow.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from flamerecon.outputs.atomic import atomic_path
+from flamerecon.outputs.export import voxel_size
+
+_AXES = {"x": 2, "y": 1, "z": 0}  # world axis -> array axis of (nz, ny, nx)
+_INSTALL_HINT = "install it with: pip install 'flamerecon[figures]'"
+
+
+def to_display(image: torch.Tensor) -> torch.Tensor:
+    """(C, H, W) image for display: grey images become RGB, values clipped to [0, 1]."""
+    image = image.detach().float().cpu().clamp(0, 1)
+    return image.expand(3, -1, -1) if image.shape[0] == 1 else image[:3]
+
+
+def side_by_side(rendered: torch.Tensor, captured: torch.Tensor) -> torch.Tensor:
+    """rendered | captured | |error| (x4) as one (3, H, 3W) image."""
+    err = ((rendered.clamp(0, 1) - captured).abs() * 4).clamp(0, 1)
+    return torch.cat([to_display(rendered), to_display(captured), to_display(err)], dim=-1)
+
+
+def _numpy(value) -> np.ndarray:
+    if isinstance(value, torch.Tensor):
+        value = value.detach().float().cpu().numpy()
+    return np.asarray(value, dtype=np.float32)
+
+
+def to_rgb8(image, vmax: float | None = None, colormap: int = cv2.COLORMAP_INFERNO) -> np.ndarray:
+    """Image (C, H, W) -> (H, W, 3) uint8 RGB, values scaled by ``vmax`` (default: image max).
+
+    Three channels are shown as colour; one channel (or any other count, summed) through
+    ``colormap``. Negative values clip to 0.
+    """
+    img = _numpy(image)
+    if img.ndim == 2:
+        img = img[None]
+    if img.ndim != 3:
+        raise ValueError(f"to_rgb8: image must be (C, H, W), got shape {img.shape}")
+    if img.shape[0] != 3:
+        img = img.sum(axis=0, keepdims=True)
+    top = float(img.max()) if vmax is None else float(vmax)
+    scaled = np.clip(img / top, 0.0, 1.0) if top > 0 else np.zeros_like(img)
+    as8 = np.round(scaled * 255).astype(np.uint8)
+    if as8.shape[0] == 3:
+        return np.ascontiguousarray(as8.transpose(1, 2, 0))
+    bgr = cv2.applyColorMap(as8[0], colormap)
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def project_along(density, bbox_min, bbox_max, axis: str = "y") -> np.ndarray:
+    """Orthographic line integral of the density along world ``axis`` (world units), the
+    emission seen from far along that axis: (C, nz, ny, nx) -> (C, rows, cols).
+
+    Remaining axes in array order: along y -> (C, nz, nx), along z -> (C, ny, nx),
+    along x -> (C, nz, ny); rows grow downwards in the image.
+    """
+    vol = _numpy(density)
+    if axis not in _AXES:
+        raise ValueError(f"project_along: axis must be one of x, y, z, got {axis!r}")
+    step = voxel_size(bbox_min, bbox_max, vol.shape)["xyz".index(axis)]
+    return vol.sum(axis=1 + _AXES[axis]) * np.float32(step)
+
+
+def top_view(density, bbox_min, bbox_max, up: str = "y", vmax: float | None = None) -> np.ndarray:
+    """The paper's Fig. 5: the density seen from above (along the ``up`` axis) as (H, W, 3)
+    uint8; log it every N iterations to watch the solve sharpen."""
+    return to_rgb8(project_along(density, bbox_min, bbox_max, up), vmax)
+
+
+def slices_figure(
+    path: str | os.PathLike,
+    density,
+    bbox_min,
+    bbox_max,
+    index: Sequence[int] | None = None,
+    channel: int | None = None,
+    title: str = "",
+) -> Path:
+    """PNG of the xy, xz and yz planes through voxel ``index`` = (i, j, k) (default: the
+    centre), world-unit axes, one shared colour bar. ``channel`` picks one colour channel;
+    default: their sum (total emission)."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as err:
+        raise ImportError(f"slices_figure needs matplotlib; {_INSTALL_HINT}") from err
+    vol = _numpy(density)
+    scalar = vol.sum(axis=0) if channel is None else vol[channel]
+    nz, ny, nx = scalar.shape
+    i, j, k = (nx // 2, ny // 2, nz // 2) if index is None else (int(v) for v in index)
+    if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
+        raise ValueError(f"slices_figure: index {(i, j, k)} outside the grid (nx, ny, nz) = "
+                         f"{(nx, ny, nz)}")
+    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    centre = lo + (np.array([i, j, k]) + 0.5) * voxel_size(lo, hi, scalar.shape)
+    panels = [  # (image rows x cols, horizontal axis, vertical axis, which plane)
+        (scalar[k], 0, 1, f"xy at z = {centre[2]:.3g}"),
+        (scalar[:, j, :], 0, 2, f"xz at y = {centre[1]:.3g}"),
+        (scalar[:, :, i], 1, 2, f"yz at x = {centre[0]:.3g}"),
+    ]
+    vmax = max(float(p[0].max()) for p in panels) or 1.0
+    fig = Figure(figsize=(13, 4.2), dpi=100, layout="constrained")
+    axes = fig.subplots(1, 3)
+    for ax, (plane, h, v, label) in zip(axes, panels):
+        shown = ax.imshow(plane, origin="lower", extent=(lo[h], hi[h], lo[v], hi[v]),
+                          cmap="inferno", vmin=0.0, vmax=vmax, interpolation="nearest")
+        ax.set_xlabel("xyz"[h])
+        ax.set_ylabel("xyz"[v])
+        ax.set_title(label)
+    fig.colorbar(shown, ax=list(axes), shrink=0.9,
+                 label="density" if channel is None else f"density, channel {channel}")
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
+def overlay_mask(image, mask, color: tuple[int, int, int] = (0, 255, 0),
+                 alpha: float = 0.3) -> np.ndarray:
+    """A silhouette (e.g. the visual hull projected into a view) over an image.
+
+    image: (C, H, W) float in [0, 1] or (H, W, 3) uint8; mask: (H, W) bool. The mask is tinted
+    with ``color`` at ``alpha`` and its outline drawn at full strength. Returns (H, W, 3) uint8.
+    """
+    if isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 3:
+        rgb = image.copy()
+    else:
+        rgb = to_rgb8(image, vmax=1.0)
+    region = _numpy(mask).astype(bool)
+    if region.shape != rgb.shape[:2]:
+        raise ValueError(f"overlay_mask: mask {region.shape} and image {rgb.shape[:2]} differ")
+    tint = np.array(color, dtype=np.float32)
+    rgb[region] = np.round((1 - alpha) * rgb[region] + alpha * tint).astype(np.uint8)
+    contours, _ = cv2.findContours(region.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(rgb, contours, -1, tuple(int(c) for c in color), 1)
+    return rgb
+
+
+def montage(images: Sequence[np.ndarray], columns: int, labels: Sequence[str] = ()) -> np.ndarray:
+    """Tile (H, W, 3) uint8 images row by row (black where a row runs short), optional labels
+    drawn in the top-left corner of each tile."""
+    if not images:
+        raise ValueError("montage: no images")
+    h, w = images[0].shape[:2]
+    rows = math.ceil(len(images) / columns)
+    sheet = np.zeros((rows * h, columns * w, 3), dtype=np.uint8)
+    for n, img in enumerate(images):
+        if img.shape != (h, w, 3):
+            raise ValueError(f"montage: image {n} is {img.shape}, expected {(h, w, 3)}")
+        r, c = divmod(n, columns)
+        tile = np.ascontiguousarray(img)
+        if n < len(labels):
+            cv2.putText(tile, str(labels[n]), (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                        (255, 255, 255), 1, cv2.LINE_AA)
+        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = tile
+    return sheet
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """(H, W, 3) uint8 RGB to PNG, atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(image[..., ::-1])):
+            raise OSError(f"{path}: OpenCV could not write the PNG")
+    return path
+
+
+def write_mp4(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 24.0) -> Path:
+    """Frames (H, W, 3) uint8 RGB to an MPEG-4 (``mp4v``) video through OpenCV, atomically.
+
+    ``mp4v`` is the codec opencv-python-headless ships an encoder for (no H.264); VLC, ffmpeg
+    and most players open it, some web browsers do not: use the GIF there."""
+    frames = _check_frames(frames, "write_mp4")
+    h, w = frames[0].shape[:2]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+        if not writer.isOpened():
+            raise OSError(f"{path}: OpenCV has no mp4v encoder here")
+        try:
+            for frame in frames:
+                writer.write(np.ascontiguousarray(frame[..., ::-1]))
+        finally:
+            writer.release()
+    return path
+
+
+def write_gif(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 12.0) -> Path:
+    """Frames (H, W, 3) uint8 RGB to a looping GIF through Pillow, atomically."""
+    try:
+        from PIL import Image
+    except ImportError as err:
+        raise ImportError(f"write_gif needs Pillow; {_INSTALL_HINT}") from err
+    frames = _check_frames(frames, "write_gif")
+    pictures = [Image.fromarray(f) for f in frames]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        pictures[0].save(tmp, format="GIF", save_all=True, append_images=pictures[1:],
+                         duration=max(20, round(1000 / fps)), loop=0)
+    return path
+
+
+def _check_frames(frames: Sequence[np.ndarray], who: str) -> list[np.ndarray]:
+    frames = list(frames)
+    if not frames:
+        raise ValueError(f"{who}: no frames")
+    shape = frames[0].shape
+    for n, f in enumerate(frames):
+        if f.dtype != np.uint8 or f.ndim != 3 or f.shape[2] != 3 or f.shape != shape:
+            raise ValueError(f"{who}: frame {n} must be (H, W, 3) uint8 like frame 0 {shape}, "
+                             f"got {f.dtype} {f.shape}")
+    return frames
+
+
+def orbit_cameras(
+    azimuth_deg: Sequence[float] | float,
+    elevation_deg: float,
+    distance: float,
+    target: Sequence[float],
+    width: int = 320,
+    height: int = 240,
+    fov_deg: float = 40.0,
+    up: Sequence[float] = (0.0, 1.0, 0.0),
+):
+    """Cameras on a circle around ``target`` looking at it (kornia batch, one per azimuth).
+
+    Azimuth turns about the ``up`` direction, 0 on the side of the world axis most
+    perpendicular to ``up`` (+z for up = +y) and 90 towards the next one (+x for up = +y);
+    elevation lifts the camera towards ``up``; distance in world units; ``fov_deg`` the
+    vertical field of view. Pixel centres at +0.5 (flamerecon's convention).
+    """
+    from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
+
+    up_dir = np.asarray(up, dtype=np.float64)
+    up_dir = up_dir / np.linalg.norm(up_dir)
+    first = np.eye(3)[_least_aligned(up_dir)]
+    first = first - (first @ up_dir) * up_dir
+    first /= np.linalg.norm(first)
+    second = np.cross(up_dir, first)  # +x for up = +y, first = +z
+    az = np.radians(np.atleast_1d(np.asarray(azimuth_deg, dtype=np.float64)))
+    el = math.radians(float(elevation_deg))
+    offsets = distance * (math.cos(el) * (np.cos(az)[:, None] * first + np.sin(az)[:, None] * second)
+                          + math.sin(el) * up_dir)
+    centre = np.asarray(target, dtype=np.float64)
+    eyes = centre + offsets
+    w2c = look_at(torch.from_numpy(eyes), torch.from_numpy(centre).expand(len(az), 3),
+                  up=torch.from_numpy(up_dir))
+    focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2)
+    K = intrinsics_matrix(focal, focal, width / 2, height / 2).expand(len(az), 3, 3)
+    return make_cameras(K, w2c, height, width)
+
+
+def framing_distance(bbox_min, bbox_max, fov_deg: float, margin: float = 1.1) -> float:
+    """Distance from the box centre at which a camera with vertical field of view ``fov_deg``
+    sees the whole box (its bounding sphere) with ``margin``."""
+    radius = 0.5 * float(np.linalg.norm(np.asarray(bbox_max, float) - np.asarray(bbox_min, float)))
+    return margin * radius / math.sin(math.radians(fov_deg) / 2)
+
+
+def support_box(density, bbox_min, bbox_max, threshold: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """World box (min xyz, max xyz) of the voxels brighter than ``threshold`` times the
+    brightest (channels summed), cell extents included; the whole box for an empty volume."""
+    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    total = _numpy(density).sum(axis=0)
+    peak = float(total.max())
+    if peak <= 0:
+        return lo, hi
+    k, j, i = np.nonzero(total > threshold * peak)
+    size = voxel_size(lo, hi, total.shape)
+    first = np.array([i.min(), j.min(), k.min()])
+    last = np.array([i.max(), j.max(), k.max()]) + 1
+    return lo + first * size, lo + last * size
+
+
+def _least_aligned(direction: np.ndarray) -> int:
+    """World axis most perpendicular to ``direction``; ties go to z, then x, then y."""
+    return min((2, 0, 1), key=lambda a: abs(direction[a]))
+
+
+# ---------------------------------------------------------------------------------------------
+# renders of a density through the projector
+
+
+def grid_of(density, bbox_min, bbox_max):
+    """The VoxelGrid a (C, nz, ny, nx) density of ``density.npz`` lives on."""
+    from flamerecon.geometry.grid import VoxelGrid
+
+    nz, ny, nx = density.shape[-3:]
+    return VoxelGrid.from_box(tuple(np.asarray(bbox_min, float)), tuple(np.asarray(bbox_max, float)),
+                              (nx, ny, nz))
+
+
+def render_views(density, bbox_min, bbox_max, cams, step: float = 0.5, device=None,
+                 batch: int = 8) -> torch.Tensor:
+    """Full images of the density from every camera of ``cams``: (B, C, H, W) float32 on the
+    CPU, pixel = line integral in world units (the projector's matrix-free renderer), rendered
+    ``batch`` cameras at a time on ``device`` (default: the density's, CPU for numpy)."""
+    from flamerecon.geometry.cameras import camera_subset, cameras_to
+    from flamerecon.operators.projector import render_image
+
+    volume = density if isinstance(density, torch.Tensor) else torch.from_numpy(_numpy(density))
+    if device is not None:
+        volume = volume.to(device)
+    volume = volume.float()
+    grid = grid_of(volume, bbox_min, bbox_max)
+    cams = cameras_to(cams, volume.device)
+    out = []
+    for start in range(0, cams.batch_size, batch):
+        index = list(range(start, min(start + batch, cams.batch_size)))
+        out.append(render_image(volume, grid, camera_subset(cams, index), step=step).cpu())
+    return torch.cat(out)
+
+
+def views_around(density, bbox_min, bbox_max, n: int = 10, elevation_deg: float = 15.0,
+                 width: int = 320, height: int = 240, fov_deg: float = 40.0,
+                 up: Sequence[float] = (0.0, 1.0, 0.0), columns: int = 5, device=None,
+                 vmax: float | None = None) -> np.ndarray:
+    """The paper's Fig. 6: the density rendered from ``n`` views evenly around it, one
+    brightness scale for all (``vmax``, default the brightest pixel), tiled ``columns`` wide
+    and labelled with the azimuth: (rows * height, columns * width, 3) uint8. The cameras
+    frame the flame (voxels above 1 % of the peak) and look at its centre."""
+    azimuths = np.arange(n) * 360.0 / n
+    images = _orbit_renders(density, bbox_min, bbox_max, azimuths, elevation_deg, width, height,
+                            fov_deg, up, device, vmax)
+    return montage(images, columns, labels=[f"{a:.0f} deg" for a in azimuths])
+
+
+def turntable_frames(density, bbox_min, bbox_max, n_frames: int = 36,
+                     elevation_deg: float = 15.0, width: int = 320, height: int = 240,
+                     fov_deg: float = 40.0, up: Sequence[float] = (0.0, 1.0, 0.0),
+                     device=None, vmax: float | None = None) -> list[np.ndarray]:
+    """``n_frames`` renders on a full circle, one brightness scale (``vmax``, default the
+    brightest pixel): frames for :func:`write_mp4` / :func:`write_gif`."""
+    azimuths = np.arange(n_frames) * 360.0 / n_frames
+    return _orbit_renders(density, bbox_min, bbox_max, azimuths, elevation_deg, width, height,
+                          fov_deg, up, device, vmax)
+
+
+def hull_masks(hull, grid, cams) -> torch.Tensor:
+    """Where the visual hull (nz, ny, nx) bool on ``grid`` projects in every camera:
+    (B, H, W) bool, by rendering its indicator (nonzero line integral)."""
+    from flamerecon.operators.projector import render_image
+
+    indicator = torch.as_tensor(hull, device=cams.intrinsics.device).float()[None]
+    return render_image(indicator, grid, cams)[:, 0].cpu() > 0
+
+
+def compare_images(rendered, captured, vmax: float = 1.0) -> np.ndarray:
+    """Held-out view figure (the paper's Fig. 7): rendered | captured | absolute error, images
+    (C, H, W) in [0, vmax]; the error is scaled to its own maximum. (H, 3 W, 3) uint8."""
+    r, c = _numpy(rendered), _numpy(captured)
+    if r.shape != c.shape:
+        raise ValueError(f"compare_images: rendered {r.shape} and captured {c.shape} differ")
+    error = np.abs(r - c).mean(axis=0, keepdims=True)
+    return np.concatenate([to_rgb8(r, vmax), to_rgb8(c, vmax), to_rgb8(error)], axis=1)
+
+
+def _orbit_renders(density, bbox_min, bbox_max, azimuths, elevation_deg, width, height, fov_deg,
+                   up, device, vmax) -> list[np.ndarray]:
+    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    near, far = support_box(density, lo, hi)
+    cams = orbit_cameras(azimuths, elevation_deg, framing_distance(near, far, fov_deg),
+                         (near + far) / 2, width, height, fov_deg, up)
+    images = render_views(density, lo, hi, cams, device=device)
+    vmax = float(images.max()) if vmax is None else vmax
+    return [to_rgb8(img, vmax) for img in images]

@@ -1,0 +1,265 @@
+"""The run folder, written and read back: density.npz, cameras.json, metrics.json, renders/
+and the final TensorBoard entries of a :class:`~flamerecon.fit.reconstruct.Reconstruction`;
+:func:`load_run` turns a finished CLI run folder back into objects, :func:`evaluate` re-scores
+it in place."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from flamerecon.device import resolve_device
+from flamerecon.errors import RunFolderError
+from flamerecon.evaluate.scores import native_scores, score, write_renders
+from flamerecon.fit.build import scene_grid, split_views
+from flamerecon.fit.checks import check_density_fits
+from flamerecon.fit.options import ReconstructionOptions
+from flamerecon.fit.reconstruct import Reconstruction, mean_of
+from flamerecon.geometry.cameras import K_of, make_cameras
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.outputs.export import load_density, save_density
+from flamerecon.outputs.figures import top_view
+from flamerecon.run.guard import StopSolve
+from flamerecon.run.hook import log_pictures
+from flamerecon.run.summary import flat_metrics
+from flamerecon.run.tensorboard import RunWriter
+from flamerecon.scenes import Scene, load_scene
+
+CONFIG_FILE = Path(".hydra") / "config.yaml"
+RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "log", "checkpoint", "export", "hydra")
+
+
+def cameras_record(scene: Scene, train: list[int],
+                   photometry: dict[str, tuple[float, float]] | None = None) -> list[dict]:
+    """cameras.json content: every camera with K, world_to_camera, size, its role, and its
+    ``gain`` and ``offset`` (image = gain * integral + offset; 1 and 0 unless fitted); after
+    calibration refinement K and world_to_camera are the refined ones and ``K_calibrated``,
+    ``world_to_camera_calibrated`` the scene's own."""
+    K = K_of(scene.cameras).cpu()
+    E = scene.cameras.extrinsics.cpu()
+    photometry = photometry or {}
+    original = scene.meta.get("calibrated_cameras")
+    records = [
+        {
+            "name": name,
+            "K": K[i].tolist(),
+            "world_to_camera": E[i].tolist(),
+            "width": int(scene.cameras.width[i]),
+            "height": int(scene.cameras.height[i]),
+            "split": "train" if i in train else "holdout",
+            "gain": photometry.get(name, (1.0, 0.0))[0],
+            "offset": photometry.get(name, (1.0, 0.0))[1],
+        }
+        for i, name in enumerate(scene.views)
+    ]
+    if original is not None:
+        for i, record in enumerate(records):
+            record["K_calibrated"] = K_of(original)[i].cpu().tolist()
+            record["world_to_camera_calibrated"] = original.extrinsics[i].cpu().tolist()
+    return records
+
+
+def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
+           step: float, silhouette: dict, photometry: dict[str, tuple[float, float]] | None = None,
+           native_scene: Mapping | None = None, calibration: dict | None = None) -> tuple[dict, torch.Tensor]:
+    """metrics.json's scores of a density (C, nz, ny, nx) and the held-out renders (V, C, H, W).
+    With ``native_scene`` (the scene's options) the held-out views are also scored at the
+    capture's native resolution (when the run works below it). ``calibration`` (see
+    :func:`~flamerecon.fit.reconstruct.calibrated_scene`) is recorded with
+    ``train_psnr_after``, this density's training PSNR."""
+    metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
+    H, W = scene.image_size
+    metrics["resolution"] = {"working": [W, H]}
+    if native_scene is not None:
+        found = native_scores(native_scene, volume, grid, [scene.views[v] for v in holdout], step)
+        if found is not None:
+            per_view, size = found
+            for name, values in per_view.items():
+                metrics["heldout"][name].update(values)
+            metrics["resolution"]["native"] = list(size)
+    if calibration:
+        metrics["calibration"] = {**calibration, "train_psnr_after": mean_of(metrics["train"], "psnr")}
+    return metrics, held_imgs
+
+
+def write_scores(run_dir: Path, metrics: dict, held_imgs: torch.Tensor, scene: Scene, holdout: list[int]) -> None:
+    """renders/ (the held-out renders) and metrics.json."""
+    write_renders(run_dir, held_imgs, scene, holdout)
+    write_json_atomic(run_dir / "metrics.json", metrics)
+
+
+def solver_record(rec: Reconstruction, stopped: StopSolve | None) -> dict:
+    """metrics.json's ``solver``: name, weights, iterations and time (the solve's and its
+    photometry refits' together), status and the records of the grid levels, weight
+    selection, photometry (iterations per refit) and debiasing."""
+    fit, result = rec.fit, rec.fit.result
+    iterations = result.iterations
+    if fit.photometry is not None:
+        iterations = fit.photometry.solve_iterations + sum(fit.photometry.iterations)
+    info = {
+        "name": fit.options.solver.name, "l1": fit.l1, "iterations": iterations,
+        "seconds": result.seconds, "objective": result.objective, "converged": result.converged,
+        "status": "finished" if stopped is None else "diverged", "device": str(result.x.device),
+    }
+    gaps = [h["rel_gap"] for h in result.history if "rel_gap" in h]
+    if gaps:
+        info["rel_gap"] = gaps[-1]
+    if stopped is not None:
+        info["stopped"] = {"iteration": stopped.iteration, "reason": stopped.detail}
+    if rec.levels:
+        info["levels"] = rec.levels
+    info.update({k: v for k, v in (("selection", fit.selection), ("debias", fit.debias)) if v is not None})
+    if fit.photometry is not None:
+        info["photometry"] = {"rounds": len(fit.photometry.iterations), "iterations": fit.photometry.iterations}
+    return info
+
+
+def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, writer: RunWriter,
+                  stopped: StopSolve | None = None) -> dict:
+    """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries of
+    ``rec``; returns the metrics."""
+    setup, options, scene = rec.setup, rec.options, rec.scene
+    volume = rec.density
+    info = solver_record(rec, stopped)
+    per_view = rec.fit.photometry.per_view(setup) if rec.fit.photometry is not None else None
+    save_density(
+        run_dir / "density.npz", volume.cpu(), setup.grid.bbox_min, setup.grid.bbox_max,
+        [scene.views[i] for i in setup.train], solver=json.dumps(info), frame=int(scene_options.get("frame", 0)),
+    )
+    write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train, per_view)})
+    metrics, held_imgs = scores(scene, volume, setup.grid, setup.train, setup.holdout, setup.step,
+                                options.silhouette.as_dict(), per_view, calibration=rec.calibration)
+    metrics["solver"] = info
+    write_scores(run_dir, metrics, held_imgs, scene, setup.holdout)
+    for name, values in (rec.calibration or {}).get("cameras", {}).items():
+        writer.scalars(0, {k: v for k, v in values.items() if k != "principal_point_px"}, f"calibration/{name}")
+    if rec.calibration:
+        writer.scalars(0, {k: metrics["calibration"][k] for k in ("train_psnr_before", "train_psnr_after")},
+                       "calibration")
+    log_pictures(writer, setup, rec.fit.result.iterations, volume, held_imgs)  # the final renders, not again
+    writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
+                                                  setup.grid.bbox_max), 0, "HWC")
+    solver = options.solver
+    writer.hparams(
+        {"scene": scene_options["name"], "solver": solver.name, "l1": rec.fit.l1,
+         "grid": str(setup.grid.resolution), "grid_levels": str(list(options.grid.levels)),
+         "holdout": ",".join(scene.views[i] for i in setup.holdout),
+         **{k: float(solver.params[k]) for k in ("smooth", "tv") if solver.params.get(k) is not None}},
+        flat_metrics(metrics),
+    )
+    return metrics
+
+
+def run_config(run_dir: str | Path):
+    """The config a run folder was made with (``.hydra/config.yaml``, an OmegaConf node)."""
+    from omegaconf import OmegaConf
+
+    cfg_path = Path(run_dir) / CONFIG_FILE
+    if not cfg_path.is_file():
+        raise RunFolderError(f"{cfg_path}: not found; is {run_dir} a flamerecon run folder?")
+    return OmegaConf.load(cfg_path)
+
+
+def run_options(run_dir: str | Path) -> tuple[ReconstructionOptions, dict]:
+    """A run folder's :class:`~flamerecon.fit.options.ReconstructionOptions` and its scene options
+    (a plain dict), from ``.hydra/config.yaml``."""
+    from omegaconf import OmegaConf
+
+    plain = OmegaConf.to_container(run_config(run_dir), resolve=True)
+    return ReconstructionOptions.from_dict(plain, ignore=RUN_LAYER_KEYS), plain["scene"]
+
+
+def read_photometry(run_dir: Path) -> dict[str, tuple[float, float]] | None:
+    """{view: (gain, offset)} from a run's cameras.json, None when it has none."""
+    path = run_dir / "cameras.json"
+    if not path.is_file():
+        return None
+    cams = json.loads(path.read_text()).get("cameras", [])
+    return {c["name"]: (float(c.get("gain", 1.0)), float(c.get("offset", 0.0))) for c in cams}
+
+
+def recorded_calibration(run_dir: Path, scene: Scene) -> tuple[Scene, dict | None]:
+    """``scene`` with the refined cameras of a run that refined its calibration (cameras.json's
+    K and world_to_camera where it also holds ``K_calibrated``), and metrics.json's
+    ``calibration`` record; ``(scene, None)`` for a run without refinement."""
+    path = run_dir / "cameras.json"
+    cams = json.loads(path.read_text()).get("cameras", []) if path.is_file() else []
+    if not cams or "K_calibrated" not in cams[0]:
+        return scene, None
+    by_name = {c["name"]: c for c in cams}
+    missing = [v for v in scene.views if v not in by_name]
+    if missing:
+        raise RunFolderError(f"{path}: no camera named {missing}; the scene has {scene.views}")
+    K = torch.tensor([by_name[v]["K"] for v in scene.views])
+    E = torch.tensor([by_name[v]["world_to_camera"] for v in scene.views])
+    cameras = make_cameras(K, E, scene.cameras.height, scene.cameras.width)
+    old = run_dir / "metrics.json"
+    record = json.loads(old.read_text()).get("calibration") if old.is_file() else None
+    return replace(scene, cameras=cameras, meta={**scene.meta, "calibrated_cameras": scene.cameras}), record
+
+
+@dataclass
+class Run:
+    """A finished run folder as objects (:func:`load_run`)."""
+
+    folder: Path
+    options: ReconstructionOptions
+    scene_options: dict
+    scene: Scene  # with the run's refined cameras when it refined its calibration
+    grid: VoxelGrid
+    density: torch.Tensor  # (C, nz, ny, nx)
+    train: list[int]
+    holdout: list[int]
+    photometry: dict[str, tuple[float, float]] | None  # {view: (gain, offset)}
+    calibration: dict | None
+    solver: dict  # density.npz's record of the solve
+    metrics: dict  # metrics.json as written ({} when absent)
+
+    def score(self, native: bool = False) -> dict:
+        """The run's metrics recomputed from its density (as metrics.json has them, less
+        ``solver``); with ``native`` also at the capture's native resolution."""
+        metrics, _ = self.scores(native)
+        return metrics
+
+    def scores(self, native: bool = False) -> tuple[dict, torch.Tensor]:
+        return scores(self.scene, self.density, self.grid, self.train, self.holdout,
+                      float(self.options.projector.step), self.options.silhouette.as_dict(),
+                      self.photometry, self.scene_options if native else None, self.calibration)
+
+
+def load_run(run_dir: str | Path, device: str = "auto") -> Run:
+    """A finished CLI run folder (``.hydra/config.yaml``, density.npz, cameras.json,
+    metrics.json) back as a :class:`Run`: its options, scene, density and scores."""
+    run_dir = Path(run_dir)
+    options, scene_options = run_options(run_dir)
+    saved = load_density(run_dir / "density.npz")
+    scene, calibration = recorded_calibration(run_dir, load_scene(scene_options))
+    train, holdout = split_views(scene, options)
+    lo, hi = tuple(saved.bbox_min.tolist()), tuple(saved.bbox_max.tolist())
+    nz, ny, nx = saved.density.shape[1:]
+    grid = VoxelGrid(lo, hi, (nx, ny, nz))
+    check_density_fits(run_dir / "density.npz", saved, scene, scene_grid(options.grid, scene), run_dir / CONFIG_FILE)
+    volume = torch.from_numpy(saved.density).to(resolve_device(device))
+    with np.load(run_dir / "density.npz") as f:
+        solver = json.loads(str(f["solver"])) if "solver" in f.files else {}
+    metrics_path = run_dir / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    return Run(run_dir, options, scene_options, scene, grid, volume, train, holdout, read_photometry(run_dir),
+               calibration, solver, metrics)
+
+
+def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> dict:
+    """Re-render the views of a finished run from its saved ``density.npz`` and config,
+    write ``metrics.json`` and ``renders/``; returns the metrics. With ``native`` the held-out
+    views are also scored at the capture's native resolution (``scene.downscale=1``)."""
+    run = load_run(run_dir, device)
+    metrics, held_imgs = run.scores(native)
+    metrics["solver"] = run.solver
+    write_scores(run.folder, metrics, held_imgs, run.scene, run.holdout)
+    return metrics

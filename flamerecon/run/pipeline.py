@@ -1,0 +1,168 @@
+"""The run layer's reconstruction: ``reconstruct(cfg, run_dir)`` converts the Hydra config to
+:class:`~flamerecon.fit.options.ReconstructionOptions` once, runs the core's one path
+(:func:`flamerecon.fit.reconstruct.reconstruct`) through the run folder's hook
+(:class:`~flamerecon.run.hook.RunHook`: TensorBoard, checkpoints, resume, divergence guard)
+and writes the run folder (:mod:`flamerecon.run.folder`).
+
+The functions below :func:`reconstruct_in` take a config where the core takes options: thin
+adapters for the scripts and tools that hold a Hydra config (leave-one-out, joint frames).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from flamerecon.device import resolve_device
+from flamerecon.errors import SolveDiverged
+from flamerecon.fit import reconstruct as core
+from flamerecon.fit.build import Setup, build, scene_grid
+from flamerecon.fit.levels import level_grids
+from flamerecon.fit.option_rules import check_options
+from flamerecon.fit.reconstruct import Photometry, mean_of
+from flamerecon.fit.refine_cameras import RefineOptions
+from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.outputs.export import check_exporters, export_run
+from flamerecon.run.checkpoint import CHECKPOINT_FILE, load_checkpoint
+from flamerecon.run.config import options_from_config, start_run
+from flamerecon.run.folder import (
+    cameras_record,
+    evaluate,
+    run_config,
+    write_outputs,
+)
+from flamerecon.run.hook import RunHook, RunOptions, Watch
+from flamerecon.run.lock import run_lock
+from flamerecon.run.summary import flat_metrics, summary_table
+from flamerecon.run.tensorboard import RunWriter
+from flamerecon.scenes import Scene, load_scene
+from flamerecon.solvers import Problem, Solver, SolveResult
+
+__all__ = ["Photometry", "Setup", "calibrated_scene", "cameras_record", "choose_weights", "evaluate",
+           "flat_metrics", "make_problem", "mean_of", "options_from_config", "prepare", "reconstruct", "refine_options",
+           "resolve_device", "run_config", "solve", "solver_options", "summary_table", "warm_start"]
+
+
+def solver_options(cfg: DictConfig) -> dict:
+    """The solver's own keyword options of a config (``solver.*`` less name and weights)."""
+    return dict(options_from_config(cfg).solver.params)
+
+
+def refine_options(cfg: DictConfig) -> RefineOptions:
+    """The ``calibration:`` node of a config as :class:`~flamerecon.fit.refine_cameras.RefineOptions`."""
+    return options_from_config(cfg).calibration
+
+
+def run_options(cfg: DictConfig) -> RunOptions:
+    """The ``log:`` and ``checkpoint:`` nodes as :class:`~flamerecon.run.hook.RunOptions` (an
+    absent key keeps its default there)."""
+    log, ck = cfg.get("log") or {}, cfg.get("checkpoint") or {}
+    where = {"eval_every": (log, "eval_every"), "eval_share": (log, "eval_share"),
+             "checkpoint_every": (ck, "every"), "divergence_factor": (ck, "divergence_factor")}
+    return RunOptions(**{field: node[key] for field, (node, key) in where.items() if key in node})
+
+
+def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None) -> dict:
+    """:func:`reconstruct_in` after checking every option of ``cfg``
+    (:func:`~flamerecon.fit.option_rules.check_options`), holding ``run_dir``'s lock
+    (:func:`~flamerecon.run.lock.run_lock`: a second writer is refused)."""
+    check_options(OmegaConf.to_container(cfg, resolve=True))
+    check_exporters(cfg.get("export", {}).get("formats", []))
+    with run_lock(run_dir):
+        return reconstruct_in(cfg, run_dir, resume, watch)
+
+
+def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None) -> dict:
+    """Run the whole reconstruction for ``cfg`` and write the run folder; returns metrics.json's
+    dict.
+
+    With ``grid.levels`` the coarse grids are solved first, each logged to TensorBoard under
+    the tag prefix ``level<i>/`` and recorded in metrics.json's ``solver.levels``; the final
+    grid logs under the usual tags. With ``resume`` the reconstruction continues from
+    ``run_dir/checkpoint.pt``, in the solve it was written in (a coarse level, the final grid
+    or a photometry refit). Raises :class:`~flamerecon.errors.Interrupted` after
+    checkpointing on SIGINT/SIGTERM, and :class:`~flamerecon.errors.SolveDiverged` after
+    writing the last good iterate's outputs (a coarse level that diverges writes none).
+    ``watch``: see :class:`~flamerecon.run.hook.RunHook`.
+    """
+    if cfg.scene.get("frames") is not None:  # consecutive frames solved jointly (time as a prior)
+        from flamerecon.run.joint_frames import run_frames
+
+        return run_frames(cfg, run_dir, resume)
+    options = options_from_config(cfg)
+    core.check_solver_name(options.solver.name)
+    run_dir, device = start_run(cfg, run_dir)
+    ckpt = load_checkpoint(run_dir) if resume else None
+    clock = time.perf_counter()
+    scene = load_scene(cfg.scene)
+    timing = {"scene": time.perf_counter() - clock}
+    plan = [list(g.resolution) for g in level_grids(list(options.grid.levels) or None, scene_grid(options.grid, scene))]
+    writer = RunWriter(str(run_dir))
+    try:
+        hook = RunHook(run_dir, writer, run_options(cfg), plan, ckpt, watch)
+        rec = core.reconstruct(scene, options, hook, device)
+        timing.update(rec.timing)
+        if "solve" in timing:
+            timing["solve"] -= hook.monitor_seconds
+        timing["monitoring"] = hook.monitor_seconds
+        clock = time.perf_counter()
+        metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.stop)
+        timing["outputs"] = time.perf_counter() - clock
+    finally:
+        writer.close()
+    if hook.stop is not None:
+        raise SolveDiverged(
+            f"{run_dir}: the solve {hook.stop}; density.npz and metrics.json hold the last good "
+            f"iterate (iteration {rec.fit.result.iterations}); try a smaller step (solver.lr) or another solver"
+        )
+    (run_dir / CHECKPOINT_FILE).unlink(missing_ok=True)  # finished: nothing left to resume
+    formats = cfg.get("export", {}).get("formats", [])
+    if formats:
+        clock = time.perf_counter()
+        export_run(run_dir, list(formats))
+        timing["export"] = time.perf_counter() - clock
+    metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
+    write_json_atomic(run_dir / "metrics.json", metrics)
+    return metrics
+
+
+def prepare(cfg: DictConfig, scene: Scene, device: torch.device, grid=None) -> Setup:
+    """:func:`flamerecon.fit.build.build` with a config's options."""
+    return build(scene, options_from_config(cfg), device, grid)
+
+
+def make_problem(cfg: DictConfig, setup: Setup) -> tuple[Problem, Solver, float]:
+    """:func:`flamerecon.fit.build.make_problem` with a config's solver."""
+    from flamerecon.fit.build import make_problem as make
+
+    return make(options_from_config(cfg).solver, setup)
+
+
+def solve(cfg: DictConfig, setup: Setup, x0: torch.Tensor | None = None
+          ) -> tuple[SolveResult, float, Photometry | None]:
+    """:func:`flamerecon.fit.reconstruct.fit` with a config's options, without a run folder:
+    (result, absolute l1 weight, fitted photometry or None)."""
+    found = core.fit(setup, options_from_config(cfg), x0)
+    return found.result, found.l1, found.photometry
+
+
+def choose_weights(cfg: DictConfig, setup: Setup) -> tuple[DictConfig, dict | None]:
+    """:func:`flamerecon.fit.reconstruct.choose_weights` with a config: the config with the
+    chosen solver weights, and the selection's record (``cfg`` and None when off)."""
+    chosen, record = core.choose_weights(options_from_config(cfg), setup)
+    if record is None:
+        return cfg, None
+    return OmegaConf.merge(cfg, {"solver": chosen.solver.as_dict()}), record
+
+
+def calibrated_scene(cfg: DictConfig, scene: Scene, device: torch.device) -> tuple[Scene, dict | None]:
+    """:func:`flamerecon.fit.reconstruct.calibrated_scene` with a config's options."""
+    return core.calibrated_scene(scene, options_from_config(cfg), device)
+
+
+def warm_start(cfg: DictConfig, scene: Scene, device: torch.device, setup: Setup) -> torch.Tensor | None:
+    """:func:`flamerecon.fit.reconstruct.warm_start` with a config's options."""
+    return core.warm_start(scene, options_from_config(cfg), device, setup)

@@ -1,0 +1,212 @@
+"""How a run ends: the task ``train.py`` runs under Hydra, one-line errors with exit statuses,
+``FAILED`` markers, and the failure summary of a multirun.
+
+- A :class:`~flamerecon.errors.FlameReconError` prints ``flamerecon: error: <message>`` on
+  stderr, no traceback (``debug=true`` shows it), and exits with the error's status
+  (2 bad input, 3 diverged, 130 interrupted).
+- Every failed run folder gets a ``FAILED`` file with the message (and the traceback of an
+  unexpected exception). Under ``--multirun`` a failed job records it and returns, so the other
+  jobs still run; :class:`FailureSummary` lists the failures at the end and exits with status 2.
+- An unexpected exception (a bug) is one line too, exit status 2, its traceback in ``FAILED``.
+- :class:`LockRunFolder` refuses a second run into a run folder in use.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import traceback
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from flamerecon.errors import (
+    FlameReconError,
+    Interrupted,
+    ResumeError,
+    RunFolderError,
+    RunFolderInUse,
+    errno_text,
+)
+from flamerecon.outputs.atomic import atomic_write_text
+from flamerecon.run.checkpoint import CHECKPOINT_FILE
+from flamerecon.run.cli import one_line
+
+FAILED_FILE = "FAILED"
+
+
+def record_failure(run_dir: str | Path, message: str) -> Path | None:
+    """Write ``run_dir/FAILED`` with ``message`` (atomically); None where the folder is gone or
+    cannot be written (the one-line error on stderr says why)."""
+    folder = Path(run_dir)
+    if not folder.is_dir():
+        return None
+    try:
+        return atomic_write_text(folder / FAILED_FILE, message.rstrip() + "\n")
+    except OSError:
+        return None
+
+
+def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
+    """Make a relative ``scene.root`` that names something under ``start`` (the folder the
+    command was started in; Hydra may have changed the working directory since) absolute, in
+    place; other roots are left to :func:`~flamerecon.scenes.calibration.resolve_root`."""
+    scene = cfg.get("scene")
+    if scene is None or "root" not in scene or OmegaConf.is_missing(scene, "root"):
+        return
+    root = scene.get("root")
+    if root is None or str(root) == "":
+        return
+    path = Path(os.path.expanduser(str(root)))
+    if not path.is_absolute() and (Path(start) / path).exists():
+        scene.root = str((Path(start) / path).resolve())
+
+
+def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
+             cwd: str | Path | None = None, overrides: list[str] | None = None) -> float | None:
+    """Reconstruct (or resume, with ``resume=RUN_DIR``: the run's own config, with the budget
+    ``overrides`` of the command line, see :func:`~flamerecon.run.resume.resume_config`) and print the
+    summary; returns the mean held-out PSNR, or None for a multirun job that failed. ``cwd`` is
+    the folder the command was started in, against which relative paths resolve (default: the
+    working directory).
+
+    A failure writes ``FAILED`` into the folder of the run that failed: the resumed folder once
+    its solve went on, this command's own folder (``run_dir``) when the resume was refused, so
+    that a finished run's folder never gets one; a folder another process holds gets nothing."""
+    from flamerecon.run.pipeline import flat_metrics, reconstruct, run_config, summary_table
+    from flamerecon.run.resume import resume_config
+
+    debug = bool(cfg.get("debug", False))
+    start = Path.cwd() if cwd is None else Path(cwd)
+    failed_in = Path(run_dir)
+    try:
+        if cfg.get("resume"):
+            resumed = Path(str(cfg.resume))
+            if not resumed.is_absolute():
+                resumed = start / resumed
+            cfg = resume_config(run_config(resumed), cfg, list(overrides or []), resumed)
+            anchor_scene_root(cfg, start)
+            metrics = reconstruct(cfg, resumed, resume=True)
+            (resumed / FAILED_FILE).unlink(missing_ok=True)
+            run_dir = resumed
+        else:
+            anchor_scene_root(cfg, start)
+            metrics = reconstruct(cfg, run_dir)
+    except FlameReconError as err:
+        if debug:
+            raise
+        print(f"flamerecon: error: {err}", file=sys.stderr)
+        if isinstance(err, Interrupted):
+            raise SystemExit(err.exit_code) from None
+        if not isinstance(err, RunFolderInUse):
+            record_failure(failure_folder(err, cfg, failed_in), str(err))
+        if multirun:
+            return None
+        print("flamerecon: (run again with debug=true for the traceback)", file=sys.stderr)
+        raise SystemExit(err.exit_code) from None
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print("flamerecon: interrupted outside the solve; nothing was checkpointed",
+              file=sys.stderr)
+        raise SystemExit(130) from None
+    except Exception as err:
+        if debug:
+            raise
+        detail = traceback.format_exc()
+        folder = failure_folder(err, cfg, failed_in)
+        marker = record_failure(folder, f"unexpected {type(err).__name__}: {err}\n\n{detail}")
+        if isinstance(err, OSError) and err.errno:  # a system error outside flamerecon's writers
+            where = err.filename if err.filename is not None else folder
+            message = f"{where}: {errno_text(err)}; check the path, its permissions and free space"
+        elif isinstance(err, (OSError, ValueError)):  # bad input said in a library's own words
+            message = one_line(err)
+        else:
+            where = f"the traceback is in {marker}" if marker else "debug=true shows the traceback"
+            message = (f"{folder}: unexpected {type(err).__name__}: {one_line(err)}; {where} "
+                       "(please report it)")
+        print(f"flamerecon: error: {message}", file=sys.stderr)
+        if multirun:
+            return None
+        raise SystemExit(2) from None
+    print(f"\nflamerecon: {cfg.scene.name}, run folder {run_dir}\n{summary_table(metrics)}")
+    return flat_metrics(metrics)["heldout_psnr"]
+
+
+def failure_folder(err: Exception, cfg: DictConfig, own: Path) -> Path:
+    """Where a failure is recorded: ``own`` (this command's folder), or with ``resume=`` the
+    resumed folder when it still holds its checkpoint (an unfinished run) and the resume was
+    not refused: a finished run's folder never gets a ``FAILED``."""
+    if not cfg.get("resume") or isinstance(err, (ResumeError, RunFolderError)):
+        return own
+    resumed = Path(str(cfg.resume))
+    return resumed if (resumed / CHECKPOINT_FILE).is_file() else own
+
+
+def failures(sweep_dir: str | Path) -> list[tuple[Path, str]]:
+    """(job folder, first line of its FAILED file) for every failed job under ``sweep_dir``."""
+    out = []
+    for marker in sorted(Path(sweep_dir).rglob(FAILED_FILE)):
+        lines = marker.read_text().splitlines()
+        out.append((marker.parent, lines[0] if lines else ""))
+    return out
+
+
+class LockRunFolder(Callback):
+    """Hydra callback: take the run folder's lock (the sweep folder's, for a multirun) before
+    Hydra writes ``.hydra/`` into it, so that a second run into a folder in use is refused
+    before it changes anything there (exit status 2). The folder's name is resolved once and
+    kept (``${now:...}`` would otherwise be read again)."""
+
+    def __init__(self) -> None:
+        self.held = None
+
+    def _take(self, config: DictConfig, key: str) -> None:
+        from omegaconf import OmegaConf, open_dict, read_write
+
+        from flamerecon.run.lock import acquire
+
+        folder = str(OmegaConf.select(config, key))
+        with read_write(config), open_dict(config):
+            OmegaConf.update(config, key, folder)
+        try:
+            self.held = acquire(folder)
+        except FlameReconError as err:
+            print(f"flamerecon: error: {err}", file=sys.stderr)
+            raise SystemExit(err.exit_code) from None
+
+    def _give_back(self) -> None:
+        from flamerecon.run.lock import release
+
+        if self.held is not None:
+            release(self.held)
+            self.held = None
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._take(config, "hydra.run.dir")
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        self._give_back()
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._take(config, "hydra.sweep.dir")
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        self._give_back()
+
+
+class FailureSummary(Callback):
+    """Hydra callback: after a multirun, list the jobs that failed and exit with status 2."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        failed = failures(sweep_dir)
+        if not failed:
+            return
+        jobs = sum(1 for p in sweep_dir.iterdir() if p.is_dir() and (p / ".hydra").is_dir())
+        lines = [f"flamerecon: {len(failed)} of {jobs} jobs failed:"]
+        lines += [f"  {folder}: {msg}" for folder, msg in failed]
+        print("\n".join(lines), file=sys.stderr)
+        raise SystemExit(2)

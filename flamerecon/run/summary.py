@@ -1,0 +1,86 @@
+"""What a finished run prints and logs: the summary table, its time split, the flat metrics
+TensorBoard's hparams and multirun sweeps read."""
+
+from __future__ import annotations
+
+from flamerecon.fit.reconstruct import mean_of
+
+
+def summary_table(metrics: dict) -> str:
+    """The short table printed at the end of a run."""
+    s = metrics["solver"]
+    rows = [
+        ("held-out PSNR [dB]", (f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
+                               f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})")),
+        ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
+        ("  appearance-aligned [dB]", (f"{mean_of(metrics['heldout'], 'psnr_aligned'):.2f}  "
+                                      "(gain fitted on the left half, PSNR of the right half)")),
+    ]
+    held = list(metrics["heldout"].values())
+    if held and "psnr_silhouette" in held[0]:
+        rows.append(("  inside silhouettes [dB]", (
+            f"{mean_of(metrics['heldout'], 'psnr_silhouette'):.2f}  "
+            f"(black image: {mean_of(metrics['heldout'], 'psnr_black_silhouette'):.2f})")))
+    if held and "psnr_native" in held[0]:
+        W, H = metrics["resolution"]["native"]
+        rows += [
+            (f"  native {W}x{H} PSNR [dB]", (
+                f"{mean_of(metrics['heldout'], 'psnr_native'):.2f}  "
+                f"(black image: {mean_of(metrics['heldout'], 'psnr_black_native'):.2f})")),
+            (f"  native {W}x{H} SSIM", f"{mean_of(metrics['heldout'], 'ssim_native'):.4f}"),
+        ]
+    rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"))
+    c = metrics.get("calibration")
+    if c:
+        fitted = f", fitted to frames {c['frames']}" if c.get("frames") else ""
+        rows.append((f"calibration ({c['refine']}{fitted})", (
+            f"training {c['train_psnr_before']:.2f} -> {c['train_psnr_after']:.2f} dB, "
+            f"held-out before refinement {c['heldout_psnr_before']:.2f} dB")))
+        rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "
+                                f"focal x{r['focal_scale']:.4f}, principal point "
+                                f"({r['principal_point_px'][0]:+.2f}, {r['principal_point_px'][1]:+.2f}) px, "
+                                f"box moves {r['box_px']:.2f} px"))
+                 for name, r in c["cameras"].items()]
+    if "volume" in metrics:
+        rows.append(("volume rel. L2 / IoU", f"{metrics['volume']['rel_l2']:.4f} / {metrics['volume']['iou']:.4f}"))
+    rows += [
+        ("solver", f"{s['name']} (l1 = {s['l1']:.4g})"),
+        ("iterations", f"{s['iterations']}" + (
+            "" if s.get("converged", True) else " (stopped by the budget"
+            + (f"; relative duality gap {s['rel_gap']:.1e})" if "rel_gap" in s else ")"))),
+        ("seconds", f"{s['seconds']:.2f}"),
+    ]
+    if "timing" in metrics:
+        rows.append(("time split [s]", time_split(metrics["timing"])))
+    if "levels" in s:
+        rows.append(("grid levels", "; ".join(
+            f"{cells_of(r['resolution'])}: {r['iterations']} it, "
+            f"{r['setup_seconds']:.2f} s setup + {r['seconds']:.2f} s solve"
+            for r in s["levels"])))
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+def cells_of(resolution) -> str:
+    """``nx x ny x nz`` of a resolution (nx, ny, nz), for messages."""
+    return "x".join(str(n) for n in resolution)
+
+
+def time_split(timing: dict[str, float]) -> str:
+    """metrics.json's ``timing`` as one line, e.g. ``scene 0.4, setup 1.2 (assembly 0.8), ...``."""
+    parts = [f"{k.replace('_', ' ')} {v:.2f}" + (f" (assembly {timing['assembly']:.2f})" if k == "setup" else "")
+             for k, v in timing.items() if k != "assembly"]
+    return ", ".join(parts)
+
+
+def flat_metrics(metrics: dict) -> dict[str, float]:
+    """The headline numbers of metrics.json, flat (TensorBoard hparams, sweep summaries)."""
+    out = {
+        "heldout_psnr": mean_of(metrics["heldout"], "psnr"),
+        "heldout_ssim": mean_of(metrics["heldout"], "ssim"),
+        "train_psnr": mean_of(metrics["train"], "psnr"),
+        "seconds": metrics["solver"]["seconds"],
+    }
+    if "volume" in metrics:
+        out.update({f"volume_{k}": v for k, v in metrics["volume"].items()})
+    return out

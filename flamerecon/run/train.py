@@ -1,0 +1,44 @@
+"""The ``flamerecon`` command, also ``python train.py``: reconstruct a flame, ``flamerecon
+[key=value ...]`` (Hydra; see conf/train.yaml).
+
+Bad input ends in one line naming the file and field (exit status 2; ``debug=true`` for the
+traceback); ``resume=RUN_DIR`` continues an interrupted run in its folder.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig
+
+from flamerecon.resources import config_dir
+
+
+def task(cfg: DictConfig) -> float | None:
+    """One Hydra job: the run layer in its run folder (returns the held-out PSNR for sweeps)."""
+    from flamerecon.run.runner import run_task
+
+    hc = HydraConfig.get()
+    return run_task(cfg, hc.runtime.output_dir, multirun=hc.mode == RunMode.MULTIRUN,
+                    cwd=hc.runtime.cwd, overrides=list(hc.overrides.task))
+
+
+#: Hydra names the job after this module (``train``, so ``train.log``)
+hydra_main = hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")(task)
+
+
+def main() -> None:
+    """The console entry point: Hydra's own refusal of a command line (exit 1) becomes exit 2
+    with the one-line form after Hydra's message."""
+    try:
+        hydra_main()
+    except SystemExit as stop:
+        if stop.code == 1:  # Hydra refused the command line (unknown key or group, bad syntax)
+            print("flamerecon: error: config: the command line was refused (Hydra's message "
+                  "above); python train.py --help lists the config groups, --cfg job the keys",
+                  file=sys.stderr)
+            raise SystemExit(2) from None
+        raise
