@@ -41,13 +41,15 @@ API = {
     "DebiasOptions": "fit.debias", "RefineOptions": "fit.refine_cameras",
     "Setup": "fit.build", "build": "fit.build", "make_problem": "fit.build",
     "Reconstruction": "fit.reconstruct", "Fit": "fit.reconstruct", "SolveHook": "fit.reconstruct",
-    "Stage": "fit.reconstruct", "fit": "fit.reconstruct", "reconstruct": "fit.reconstruct",
-    "load_scene": "api", "render": "api", "score": "api",
+    "Stage": "fit.reconstruct", "fit": "fit", "reconstruct": "fit.reconstruct",
+    "load_scene": "api", "render": "api", "score": "api", "make_solver": "api",
     "Run": "run.folder", "load_run": "run.folder",
     "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
     "reconstruct_frames": "fit.joint_frames",
-    "Problem": "solvers", "make_solver": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes",
+    "Problem": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes",
 }
+# ``fit`` is the package flamerecon.fit itself, callable as flamerecon.fit.reconstruct.fit: a
+# package and a function cannot both be the attribute ``flamerecon.fit``.
 
 __all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOptions",
            "JointReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
@@ -59,7 +61,8 @@ __all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOpt
 
 def __getattr__(name: str):
     if name in API:
-        value = getattr(importlib.import_module(f"{__name__}.{API[name]}"), name)
+        module = importlib.import_module(f"{__name__}.{API[name]}")
+        value = module if API[name] == name else getattr(module, name)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'flamerecon' has no attribute {name!r}")

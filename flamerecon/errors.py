@@ -21,6 +21,18 @@ class ConfigError(FlameReconError, ValueError):
     """A config value that cannot work (unknown solver, a grid too big for memory, ...)."""
 
 
+class ArgumentError(ConfigError):
+    """An argument of a public function or class (an option too) with a value it cannot take:
+    out of range, of the wrong shape, inconsistent with another; the message names the
+    argument, what it got and what it wants."""
+
+
+class ArgumentTypeError(FlameReconError, TypeError):
+    """An argument of a public function or class of the wrong type (None where a value is
+    needed, a dict where options belong, an int tensor where a float one does); the message
+    names the argument, what it got and what it wants."""
+
+
 class HullError(FlameReconError):
     """Empty silhouettes or an empty visual hull: nothing left to reconstruct."""
 

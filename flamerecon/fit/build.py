@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from flamerecon.arguments import fields, instance, tensor, value, wrong_value
 from flamerecon.device import resolve_device
-from flamerecon.errors import ConfigError
+from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.evaluate.metrics import resample_to
 from flamerecon.fit.checks import (
     check_grid_memory,
@@ -28,8 +29,12 @@ from flamerecon.geometry.hull import hull_footprint, visual_hull
 from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.operators.projector import camera_rays, make_operator
 from flamerecon.outputs.export import load_density
+from flamerecon.rules import integer, list_of, number
 from flamerecon.scenes import Scene
-from flamerecon.solvers import SOLVERS, Problem, Solver, make_solver, resolve_l1
+from flamerecon.solvers import SOLVERS, LinearOperator, Problem, Solver, make_solver, resolve_l1
+
+#: the options :func:`build` reads; :func:`~flamerecon.fit.reconstruct.fit` refuses others.
+BUILD_OPTIONS = ("grid", "projector", "silhouette", "hull", "holdout")
 
 
 @dataclass
@@ -43,12 +48,30 @@ class Setup:
     masks: torch.Tensor  # (B, H, W) bool, every view
     hull: torch.Tensor  # (nz, ny, nx) bool
     voxel_index: torch.Tensor  # (M,) flat indices of hull voxels
-    operator: object  # LinearOperator (N, M)
+    operator: LinearOperator  # (N, M)
     pixels: torch.Tensor  # (N, C) training pixel values inside the silhouettes
     step: float
     row_view: torch.Tensor | None = None  # (N,) long: position in ``train`` of each pixel row
     seconds: float = 0.0  # wall time it took to build (hull, rays, operator)
     assembly_seconds: float = 0.0  # of which the operator (backend choice and assembly)
+    options: ReconstructionOptions | None = None  # what it was built with (fit holds to them)
+
+    def __post_init__(self) -> None:
+        fields(self)
+        B, (H, W) = self.scene.num_views, self.scene.image_size
+        views = list_of(integer(0, B - 1), what=f"a list of view indices in [0, {B - 1}]")
+        for name in ("train", "holdout"):
+            value(f"Setup.{name}", getattr(self, name), views)
+        tensor("Setup.masks", self.masks, "(B, H, W) silhouettes of every view", shape=(B, H, W), kind="bool")
+        tensor("Setup.hull", self.hull, "(nz, ny, nx) of the grid", shape=self.grid.shape, kind="bool")
+        index = tensor("Setup.voxel_index", self.voxel_index, "(M,) flat hull indices", ndim=1, kind="integer")
+        pixels = tensor("Setup.pixels", self.pixels, "(N, C) training pixels", ndim=2)
+        N, M = int(pixels.shape[0]), int(index.numel())
+        if tuple(int(n) for n in self.operator.shape) != (N, M):
+            raise wrong_value("Setup.operator", self.operator.shape, f"of shape (N, M) = ({N}, {M}): pixels x hull voxels")
+        tensor("Setup.row_view", self.row_view, "(N,) training view of each pixel row", shape=(N,),
+               kind="integer", null=True)
+        value("Setup.step", self.step, number(0, lo_open=True))
 
     def volume(self, x: torch.Tensor) -> torch.Tensor:
         """Hull values (M, C) -> dense density (C, nz, ny, nx)."""
@@ -59,11 +82,7 @@ def scene_grid(options: GridOptions, scene: Scene) -> VoxelGrid:
     """The reconstruction grid: ``options.bbox`` if set, else the scene's box."""
     lo, hi = (options.bbox[0], options.bbox[1]) if options.bbox is not None else (scene.bbox_min, scene.bbox_max)
     res = options.resolution
-    res = int(res) if isinstance(res, (int, float)) else list(res)
-    try:
-        return VoxelGrid.from_box(lo, hi, res)
-    except ValueError as err:
-        raise ConfigError(f"grid: {err}") from err
+    return VoxelGrid.from_box(lo, hi, int(res) if isinstance(res, (int, float)) else list(res))
 
 
 def split_views(scene: Scene, options: ReconstructionOptions) -> tuple[list[int], list[int]]:
@@ -82,6 +101,8 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
           grid: VoxelGrid | None = None) -> Setup:
     """Split, silhouettes, visual hull, rays and the operator restricted to them, on ``grid``
     (default: the options', :func:`scene_grid`), on ``device`` (default: ``options.device``)."""
+    check_inputs("build", scene, options, device)
+    instance("build.grid", grid, VoxelGrid, null=True)
     device = resolve_device(options.device if device is None else str(device))
     started = time.perf_counter()
     train, holdout = split_views(scene, options)
@@ -110,7 +131,20 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
     operator = make_operator(backend, grid, rays, voxel_index, step)
     now = time.perf_counter()
     return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view,
-                 now - started, now - assembly)
+                 now - started, now - assembly, options)
+
+
+def check_inputs(where: str, scene: Scene, options: ReconstructionOptions | None, device) -> None:
+    """Refuse a ``scene``, ``options`` (None: the defaults) or ``device`` of the wrong type or
+    value given to the function ``where``, naming it (``build.scene: got None; ...``)."""
+    instance(f"{where}.scene", scene, Scene)
+    instance(f"{where}.options", options, ReconstructionOptions,
+             "a ReconstructionOptions (a dict of options goes through ReconstructionOptions.from_dict)",
+             null=where != "build")
+    instance(f"{where}.device", device, (str, torch.device), "a device name (auto, cpu, cuda, cuda:N)",
+             null=True)
+    if options is not None:
+        options.check()
 
 
 def fit_pixels(which: str, grid: VoxelGrid, cams, hull: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
@@ -131,11 +165,15 @@ def check_solver_name(name: str) -> None:
 
 def make_problem(options: SolverOptions, setup: Setup) -> tuple[Problem, Solver, float]:
     """The solve ``options`` describe on ``setup``: (problem, solver, absolute l1 weight)."""
+    instance("make_problem.options", options, SolverOptions)
+    instance("make_problem.setup", setup, Setup)
     check_solver_name(options.name)
     l1_rel = None if options.l1 is not None else options.l1_rel  # an absolute weight wins
     try:
         l1 = resolve_l1(setup.operator, setup.pixels, options.l1, l1_rel)
         solver = make_solver(options.name, **options.params)
+    except FlameReconError:
+        raise
     except ValueError as err:
         raise ConfigError(str(err)) from err
     problem = Problem(setup.operator, setup.pixels, l1, grid_shape=setup.grid.shape,

@@ -14,9 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
+from flamerecon.fit.option_rules import check_section
 from flamerecon.solvers import LinearOperator, Problem, make_solver
-
-METHODS = ("none", "gain", "refit")
 
 
 @dataclass(frozen=True)
@@ -27,10 +26,7 @@ class DebiasOptions:
     iterations: int = 10
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"debias.method: unknown value '{self.method}'; choose one of {list(METHODS)}")
-        if int(self.iterations) < 1:
-            raise ValueError(f"debias.iterations: must be at least 1, got {self.iterations}")
+        check_section("debias", self)
 
 
 def training_gain(A: LinearOperator, b: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -23,10 +23,12 @@ from itertools import pairwise
 import numpy as np
 import torch
 
+from flamerecon.arguments import fields, instance, wrong_type, wrong_value
 from flamerecon.device import resolve_device
 from flamerecon.errors import ConfigError
-from flamerecon.fit.build import Setup, build, make_problem
+from flamerecon.fit.build import Setup, build, check_inputs, make_problem
 from flamerecon.fit.debias import debias
+from flamerecon.fit.option_rules import check_section
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import SolveHook, calibrated_scene
 from flamerecon.scenes import Scene
@@ -41,7 +43,6 @@ from flamerecon.solvers.temporal import (
 )
 
 JOINT_SOLVERS = ("tv", "fista")  # the per-frame objectives the joint solve extends
-MOTIONS = ("none", "shift")
 
 
 @dataclass(frozen=True)
@@ -58,12 +59,8 @@ class JointFramesOptions:
     motion: str = "none"
     max_shift: int = 3
 
-    def check(self) -> JointFramesOptions:
-        if not (self.l2 >= 0 and self.tv >= 0):
-            raise ConfigError(f"temporal: weights must be >= 0, got l2={self.l2}, tv={self.tv}")
-        if self.motion not in MOTIONS:
-            raise ConfigError(f"temporal.motion: unknown '{self.motion}'; use none or shift")
-        return self
+    def __post_init__(self) -> None:
+        check_section("temporal", self)
 
 
 def check_joint(options: ReconstructionOptions) -> None:
@@ -119,7 +116,6 @@ def prepare_frames(scenes: Sequence[Scene], options: ReconstructionOptions, devi
 def joint_solve_options(options: ReconstructionOptions, joint: JointFramesOptions,
                         prepared: PreparedFrames) -> JointOptions:
     """Absolute temporal weights (module doc) and the solver's iteration budget."""
-    joint.check()
     scale = float(np.mean([lambda_max(f.A, f.b) for f in prepared.problems]))
     s = options.solver.params
     step = s.get("dual_step")
@@ -181,6 +177,9 @@ class JointReconstruction:
     result: JointResult
     record: dict
 
+    def __post_init__(self) -> None:
+        fields(self)
+
 
 def reconstruct_frames(scenes: Sequence[Scene], options: ReconstructionOptions | None = None,
                        joint: JointFramesOptions | None = None, hook: SolveHook | None = None,
@@ -189,11 +188,17 @@ def reconstruct_frames(scenes: Sequence[Scene], options: ReconstructionOptions |
     prepared as :func:`~flamerecon.fit.reconstruct.reconstruct` would, solved together with the
     temporal coupling of ``joint`` through ``hook.joint`` (default: solve only), each frame then
     debiased. Sets torch's seed and thread count as the options say."""
-    options = (options or ReconstructionOptions()).check()
-    joint = (joint or JointFramesOptions()).check()
-    hook = hook or SolveHook()
+    if isinstance(scenes, Scene) or not isinstance(scenes, Sequence):
+        raise wrong_type("reconstruct_frames.scenes", scenes, "a list of Scenes, the frames in order")
     if len(scenes) < 1:
-        raise ConfigError("scene.frames: no frames to reconstruct")
+        raise wrong_value("reconstruct_frames.scenes", scenes, "a list of at least one Scene")
+    for i, scene in enumerate(scenes):
+        check_inputs(f"reconstruct_frames.scenes[{i}]", scene, options, device)
+    instance("reconstruct_frames.joint", joint, JointFramesOptions, null=True)
+    instance("reconstruct_frames.hook", hook, SolveHook, null=True)
+    options = (options or ReconstructionOptions()).check()
+    joint = joint or JointFramesOptions()
+    hook = hook or SolveHook()
     check_joint(options)
     torch.manual_seed(int(options.seed))
     if options.threads:

@@ -11,14 +11,26 @@ every config group has one.
 
 from __future__ import annotations
 
-import math
-import re
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 
-from flamerecon.errors import ConfigError
-
-Check = Callable[[object], str | None]  # value -> what is wrong with it, or None
+from flamerecon.arguments import describe
+from flamerecon.errors import ArgumentError, ArgumentTypeError, ConfigError, FlameReconError
+from flamerecon.rules import (
+    Check,
+    boolean,
+    choice,
+    either,
+    integer,
+    list_of,
+    number,
+    of_type,
+    pattern,
+    quoted_number,
+    takes,
+    text,
+)
 
 
 @dataclass(frozen=True)
@@ -29,106 +41,14 @@ class Rule:
     null: bool = False
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _quoted_number(value) -> bool:
-    if not isinstance(value, str):
-        return False
-    try:
-        float(value)
-    except ValueError:
-        return False
-    return True
-
-
-def integer(lo: int | None = None, hi: int | None = None) -> Check:
-    """An int (or an integral float, as ``1e3`` parses) in [lo, hi]."""
-    want = ("an integer" + (f" >= {lo}" if lo is not None else "")
-            + (f" <= {hi}" if hi is not None else ""))
-
-    def check(value):
-        if not _is_number(value) or not math.isfinite(value) or int(value) != value:
-            return want
-        if (lo is not None and value < lo) or (hi is not None and value > hi):
-            return want
-        return None
-
-    return check
-
-
-def number(lo: float | None = None, hi: float | None = None, lo_open: bool = False,
-           hi_open: bool = False) -> Check:
-    """A finite int or float in the interval from lo to hi (open ends where asked)."""
-    parts = []
-    if lo is not None:
-        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
-    if hi is not None:
-        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
-    want = " and ".join(parts) if parts else "a finite number"
-
-    def check(value):
-        if not _is_number(value) or not math.isfinite(value):
-            return want
-        if lo is not None and (value <= lo if lo_open else value < lo):
-            return want
-        if hi is not None and (value >= hi if hi_open else value > hi):
-            return want
-        return None
-
-    return check
-
-
-def boolean(value) -> str | None:
-    return None if isinstance(value, bool) else "true or false"
-
-
-def text(value) -> str | None:
-    return None if isinstance(value, str) and value != "" else "a non-empty string"
-
-
-def choice(*values) -> Check:
-    want = "one of " + ", ".join(str(v) for v in values)
-
-    def check(value):
-        return None if value in values and not isinstance(value, bool) else want
-
-    check.choices = values
-    return check
-
-
-def either(*checks: Check) -> Check:
-    """Any one of ``checks`` (the message lists them all)."""
-
-    def check(value):
-        wrong = [c(value) for c in checks]
-        return None if None in wrong else " or ".join(dict.fromkeys(wrong))
-
-    return check
-
-
-def list_of(item: Check, length: int | None = None, what: str = "") -> Check:
-    want = what or f"a list{f' of {length}' if length else ''}"
-
-    def check(value):
-        if not isinstance(value, (list, tuple)) or (length is not None and len(value) != length):
-            return want
-        return None if all(item(v) is None for v in value) else want
-
-    return check
-
-
-def pattern(regex: str, what: str) -> Check:
-    return lambda value: None if isinstance(value, str) and re.fullmatch(regex, value) else what
-
-
 _cells = integer(1)
 _resolution = either(_cells, list_of(_cells, 3, "[nx, ny, nz] of integers >= 1"))
 _box = list_of(list_of(number(), 3), 2, "[[xmin, ymin, zmin], [xmax, ymax, zmax]] of numbers")
 _view = either(text, integer())
 _views = either(_view, list_of(_view, what="a list of view names or indices"))
 
+
+@takes(dict)
 def candidate_table(value) -> str | None:
     """``select.candidates``: {solver name: [ {option: value}, ... ]}."""
     want = "a mapping of solver names to lists of option mappings, e.g. {tv: [{tv: 0.01}]}"
@@ -265,12 +185,57 @@ def problem(key: str, value) -> str | None:
         return None
     if rule.null:
         want += " or null"
-    if _quoted_number(value) and rule.check(float(value)) is None:
+    if quoted_number(value) and rule.check(float(value)) is None:
         return (f"got the string '{value}' (quoted on the command line?); {key} must be {want}: "
                 f"write {key}={value} without quotes")
     if isinstance(value, str) and hasattr(rule.check, "choices"):
         return f"unknown {key.rsplit('.', 1)[-1]} '{value}'; {key} must be {want}"
     return f"got {value!r}; {key} must be {want}"
+
+
+def refusal(key: str, value) -> FlameReconError | None:
+    """The error for ``value`` given as ``key`` through the Python API (an option class's
+    field, a function's argument) under the same rule: :class:`ArgumentTypeError` for a value
+    of a type the rule does not take (None where it is not allowed, a string for a number),
+    :class:`ArgumentError` for one of the right type out of range; None when it is fine."""
+    rule = RULES[key]
+    wrong = problem(key, value)
+    if wrong is None:
+        return None
+    if not of_type(value, rule.check):
+        want = rule.check(object()) + (" or None" if rule.null else "")
+        return ArgumentTypeError(f"{key}: got {describe(value)}; {key} must be {want}")
+    return ArgumentError(f"{key}: {wrong}")
+
+
+def check_fields(section: str, values: Mapping) -> None:
+    """Refuse the first of ``values`` ({field: value} of the options class of ``section``,
+    e.g. ``grid``; ``""`` for the top level) that breaks its rule ``section.field`` (see
+    :func:`refusal`); fields without a rule pass."""
+    for field, value in values.items():
+        key = f"{section}.{field}" if section else field
+        error = refusal(key, value) if key in RULES else None
+        if error is not None:
+            raise error
+
+
+def check_section(section: str, options) -> None:
+    """What every options dataclass does when made: its list fields become tuples (options
+    made by hand and from a config compare equal), then every field is checked by the rule
+    of ``section.field`` (:func:`check_fields`)."""
+    values = {}
+    for f in dataclasses.fields(options):
+        value = getattr(options, f.name)
+        if isinstance(value, (list, tuple)):
+            value = as_tuples(value)
+            object.__setattr__(options, f.name, value)
+        values[f.name] = value
+    check_fields(section, values)
+
+
+def as_tuples(value):
+    """Lists (nested too) as tuples."""
+    return tuple(as_tuples(v) for v in value) if isinstance(value, (list, tuple)) else value
 
 
 def leaves(tree: dict, prefix: str = "") -> dict[str, object]:

@@ -13,12 +13,15 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from flamerecon.errors import ConfigError
+from flamerecon.arguments import instance, one_or_many, wrong_value
+from flamerecon.errors import ArgumentError, ConfigError, FlameReconError
 from flamerecon.fit.debias import DebiasOptions
-from flamerecon.fit.option_rules import check_options
+from flamerecon.fit.option_rules import NULL_MAX_ITERS, check_fields, check_options, check_section
 from flamerecon.fit.refine_cameras import RefineOptions
 from flamerecon.fit.weight_selection import SelectionOptions
 from flamerecon.plain import plain
+from flamerecon.solvers import SOLVERS
+from flamerecon.solvers.base import option_names
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,11 @@ class GridOptions:
     levels: tuple = ()
     level_iters: int | tuple | None = None
 
+    def __post_init__(self) -> None:
+        check_section("grid", self)
+        if self.bbox is not None and not all(lo < hi for lo, hi in zip(*self.bbox)):
+            raise wrong_value("grid.bbox", self.bbox, "((xmin, ymin, zmin), (xmax, ymax, zmax)) with min < max on every axis")
+
 
 @dataclass(frozen=True)
 class ProjectorOptions:
@@ -44,6 +52,9 @@ class ProjectorOptions:
     step: float = 0.5
     rays: str = "silhouette"
     max_memory_gb: float | None = None
+
+    def __post_init__(self) -> None:
+        check_section("projector", self)
 
 
 @dataclass(frozen=True)
@@ -57,6 +68,9 @@ class SilhouetteOptions:
     blur_px: float = 0.0
     close_px: int = 0
 
+    def __post_init__(self) -> None:
+        check_section("silhouette", self)
+
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
@@ -67,6 +81,9 @@ class HullOptions:
 
     margin_voxels: int = 1
 
+    def __post_init__(self) -> None:
+        check_section("hull", self)
+
 
 @dataclass(frozen=True)
 class PhotometryOptions:
@@ -76,6 +93,9 @@ class PhotometryOptions:
     fit_gain: bool = False
     fit_offset: bool = True
     rounds: int = 2
+
+    def __post_init__(self) -> None:
+        check_section("photometry", self)
 
 
 @dataclass(frozen=True)
@@ -90,6 +110,21 @@ class SolverOptions:
     params: Mapping[str, Any] = field(default_factory=lambda: {
         "smooth": 0.01, "max_iters": 100, "max_seconds": None, "tol": 1.0e-4, "check_every": 10,
         "memory": 10})
+
+    def __post_init__(self) -> None:
+        check_fields("solver", {"name": self.name, "l1": self.l1, "l1_rel": self.l1_rel})
+        if self.name not in SOLVERS:
+            raise ArgumentError(f"solver.name: unknown solver '{self.name}'; choose one of {sorted(SOLVERS)}")
+        instance("solver.params", self.params, Mapping, "a mapping of the solver's options")
+        valid = option_names(SOLVERS[self.name])
+        unknown = [key for key in self.params if key not in valid]
+        if unknown:
+            raise ArgumentError(f"solver.{unknown[0]}: unknown option of solver '{self.name}'; valid: "
+                                f"{', '.join(valid)} (and name, l1, l1_rel)")
+        check_fields("solver", self.params)
+        if "max_iters" in self.params and self.params["max_iters"] is None and self.name not in NULL_MAX_ITERS:
+            raise ArgumentError(f"solver.max_iters: got None; solver {self.name} needs an integer >= 1 "
+                                f"(only {', '.join(NULL_MAX_ITERS)} takes None)")
 
     @classmethod
     def from_dict(cls, node: Mapping) -> SolverOptions:
@@ -128,7 +163,9 @@ class SelectOptions:
     folds: int = 4
     iterations: int | None = 100
 
-    def __post_init__(self) -> None:  # lists from a config become tuples: options compare equal
+    def __post_init__(self) -> None:
+        check_section("select", self)
+        # lists from a config become tuples: options compare equal
         object.__setattr__(self, "candidates", {k: tuple(dict(c) for c in v or ()) for k, v in self.candidates.items()})
 
     def for_solver(self, name: str) -> SelectionOptions | None:
@@ -167,6 +204,16 @@ class ReconstructionOptions:
     device: str = "auto"
     threads: int | None = None
 
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            if f.name in SECTIONS or f.name == "solver":
+                kind = SECTIONS.get(f.name, SolverOptions)
+                instance(f.name, getattr(self, f.name), kind,
+                         f"a {kind.__name__} (a dict of options goes through ReconstructionOptions.from_dict)")
+        holdout = one_or_many(self.holdout)  # one view, not its name's characters
+        object.__setattr__(self, "holdout", tuple(holdout) if isinstance(holdout, list) else holdout)
+        check_fields("", {k: getattr(self, k) for k in ("holdout", "init", "seed", "device", "threads")})
+
     @classmethod
     def from_dict(cls, config: Mapping, ignore: tuple[str, ...] = ()) -> ReconstructionOptions:
         """From a plain nested dict shaped like ``conf/train.yaml`` (absent keys keep their
@@ -184,8 +231,6 @@ class ReconstructionOptions:
                 values[key] = SolverOptions.from_dict(node)
             elif key in SECTIONS:
                 values[key] = section(key, SECTIONS[key], node or {})
-            elif key == "holdout":
-                values[key] = None if node is None else tuple(node)
             else:
                 values[key] = node
         return cls(**values)
@@ -215,8 +260,9 @@ def section(name: str, cls: type, node: Mapping):
     unknown = [k for k in node if k not in valid]
     if unknown:
         raise ConfigError(f"{name}: unknown key '{unknown[0]}'; valid keys are {valid}")
-    values = {k: tuple(v) if isinstance(v, list) else v for k, v in node.items()}
     try:
-        return cls(**values)
+        return cls(**node)
+    except FlameReconError:
+        raise
     except (TypeError, ValueError) as err:
         raise ConfigError(str(err) if str(err).startswith(f"{name}.") else f"{name}: {err}") from err

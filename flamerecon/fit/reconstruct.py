@@ -15,12 +15,15 @@ from typing import Any
 
 import torch
 
+from flamerecon.arguments import describe, fields, instance, tensor, value, wrong_value
 from flamerecon.device import resolve_device
-from flamerecon.errors import ConfigError
+from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.scores import score
 from flamerecon.fit.build import (
+    BUILD_OPTIONS,
     Setup,
     build,
+    check_inputs,
     check_solver_name,
     hull_values,
     init_volume,
@@ -38,6 +41,7 @@ from flamerecon.fit.weight_selection import select_weights
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
+from flamerecon.rules import integer, number
 from flamerecon.scenes import Scene
 from flamerecon.solvers import Problem, Solver, SolveResult
 
@@ -52,6 +56,12 @@ class Stage:
     level: int
     levels: int
     round: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("levels", "level", "round"):
+            value(f"Stage.{name}", getattr(self, name), integer(0))
+        if self.level > self.levels:
+            raise wrong_value("Stage.level", self.level, f"<= levels ({self.levels}): the final grid is level {self.levels}")
 
     @property
     def final(self) -> bool:
@@ -93,6 +103,11 @@ class SolveHook:
 
     def solve(self, stage: Stage, setup: Setup, problem: Problem, solver: Solver,
               x0: torch.Tensor | None, carry: dict) -> SolveResult:
+        for name, given, kind in (("stage", stage, Stage), ("setup", setup, Setup), ("problem", problem, Problem),
+                                  ("solver", solver, Solver), ("carry", carry, dict)):
+            instance(f"SolveHook.solve.{name}", given, kind)
+        x0 = tensor("SolveHook.solve.x0", x0, "(M, C) hull values", shape=tuple(problem.A.shape[1:]) + (
+            problem.b.shape[1],), finite=True, null=True)
         return solver.solve(problem, x0=x0)
 
     def resume(self) -> ResumePoint | None:
@@ -136,6 +151,10 @@ class Fit:
     debias: dict | None = None  # the debiasing's record
     seconds: dict = field(default_factory=dict)  # wall time: selection, solve, photometry
 
+    def __post_init__(self) -> None:
+        fields(self)
+        value("Fit.l1", self.l1, number(0))
+
 
 @dataclass
 class Reconstruction:
@@ -147,6 +166,9 @@ class Reconstruction:
     levels: list[dict] = field(default_factory=list)  # one record per grid (with grid.levels)
     calibration: dict | None = None  # the camera refinement's record
     timing: dict = field(default_factory=dict)  # wall seconds per step
+
+    def __post_init__(self) -> None:
+        fields(self)
 
     @property
     def options(self) -> ReconstructionOptions:
@@ -209,6 +231,7 @@ def fit(setup: Setup, options: ReconstructionOptions, x0: torch.Tensor | None = 
     (``photometry.fit_gain``), ``debias``; each solve through ``hook`` at ``stage`` (default:
     the final grid without coarse levels), from ``x0`` (M, C) or 0. ``carry``: what a resumed
     run needs of the stages before (see :class:`SolveHook`)."""
+    x0 = check_fit(setup, options, x0, hook, stage, carry)
     hook = hook or SolveHook()
     stage = stage or Stage(0, 0)
     carry = dict(carry or {})
@@ -237,6 +260,28 @@ def fit(setup: Setup, options: ReconstructionOptions, x0: torch.Tensor | None = 
     if result.stopped is None:
         result.x, debiased = debias(options.debias, setup.operator, setup.pixels, result.x)
     return Fit(result, l1, options, photometry, selection, debiased, seconds)
+
+
+def check_fit(setup: Setup, options: ReconstructionOptions, x0, hook, stage, carry) -> torch.Tensor | None:
+    """Refuse arguments :func:`fit` cannot take, and options that disagree with those
+    ``setup`` was built with in what :func:`~flamerecon.fit.build.build` reads
+    (:data:`~flamerecon.fit.build.BUILD_OPTIONS`); returns ``x0`` on the setup's device and
+    dtype."""
+    instance("fit.setup", setup, Setup)
+    instance("fit.options", options, ReconstructionOptions,
+             "a ReconstructionOptions (a dict of options goes through ReconstructionOptions.from_dict)")
+    instance("fit.hook", hook, SolveHook, null=True)
+    instance("fit.stage", stage, Stage, null=True)
+    instance("fit.carry", carry, dict, null=True)
+    built = setup.options
+    for name in BUILD_OPTIONS if built is not None else ():
+        if getattr(options, name) != getattr(built, name):
+            raise ArgumentError(
+                f"fit.options: its {name} is {describe(getattr(options, name))} but the setup was built with "
+                f"{describe(getattr(built, name))}; fit with the options given to build, or build again")
+    shape = (int(setup.voxel_index.numel()), int(setup.pixels.shape[1]))
+    x0 = tensor("fit.x0", x0, "(M, C) hull values of the setup", shape=shape, finite=True, null=True)
+    return None if x0 is None else x0.to(setup.pixels)
 
 
 def fit_photometry(options: ReconstructionOptions, setup: Setup, problem: Problem, solver: Solver,
@@ -415,6 +460,13 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     final grid; every solve through ``hook`` (default: solve only). Sets torch's seed and
     thread count as the options say. Returns the :class:`Reconstruction` (with ``stopped``
     set when the hook stopped a solve early: the later steps are then skipped)."""
+    check_inputs("reconstruct", scene, options, device)
+    instance("reconstruct.hook", hook, SolveHook, null=True)
+    init = tensor("reconstruct.init", init, "(C, nz, ny, nx) density on the grid's box", ndim=4, finite=True,
+                  null=True)
+    if init is not None and init.shape[0] != scene.images.shape[1]:
+        raise wrong_value("reconstruct.init", init, f"(C, nz, ny, nx) with C = {scene.images.shape[1]}, the "
+                          "scene's channels")
     options = (options or ReconstructionOptions()).check()
     hook = hook or SolveHook()
     check_solver_name(options.solver.name)

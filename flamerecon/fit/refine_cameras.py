@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
 
+from flamerecon.fit.option_rules import check_section
 from flamerecon.geometry.cameras import (
     K_of,
     camera_centers,
@@ -51,7 +52,6 @@ from flamerecon.geometry.cameras import (
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import Rays, integrate_dense, support_box
 
-MODES = ("none", "pose", "pose+intrinsics")
 #: parameters per camera: rotation (3), translation (3), log focal scale (1), principal point (2).
 N_PARAMS = 9
 
@@ -97,24 +97,8 @@ class RefineOptions:
     frames: tuple[int, ...] = ()
     seed: int = 0
 
-    def __post_init__(self):
-        if self.refine not in MODES:
-            raise ValueError(f"calibration.refine: unknown mode '{self.refine}'; choose one of {list(MODES)}")
-        for name in ("rounds", "iterations", "max_rays"):
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"calibration.{name}: must be at least 1, got {getattr(self, name)}")
-        if self.fit_against not in ("others", "all"):
-            raise ValueError(f"calibration.fit_against: unknown '{self.fit_against}'; use 'others' or 'all'")
-        if self.resolution is not None and int(self.resolution) < 1:
-            raise ValueError(f"calibration.resolution: must be at least 1 or null, got {self.resolution}")
-        if any(int(f) < 0 for f in self.frames):
-            raise ValueError(f"calibration.frames: frame numbers must be >= 0, got {list(self.frames)}")
-        if int(self.band_px) < 0:
-            raise ValueError(f"calibration.band_px: must be >= 0, got {self.band_px}")
-        for name in ("prior_rotation_deg", "prior_translation", "prior_focal", "prior_principal_px"):
-            value = float(getattr(self, name))
-            if not (value > 0 and math.isfinite(value)):
-                raise ValueError(f"calibration.{name}: must be a positive number, got {value}")
+    def __post_init__(self) -> None:
+        check_section("calibration", self)
 
     @property
     def active(self) -> list[int]:

@@ -11,21 +11,24 @@ from dataclasses import dataclass
 
 import torch
 
+from flamerecon.arguments import value, wrong_value
+from flamerecon.rules import either, integer, list_of, number
+
+POINT = list_of(number(), 3, "(x, y, z) of finite numbers")
+CELLS = list_of(integer(1), 3, "(nx, ny, nz) of integers >= 1")
+SIZE = either(integer(1), list_of(integer(1), 1, "[n]"), CELLS)
+
 
 def resolution_for_box(resolution, extent) -> tuple[int, int, int]:
     """(nx, ny, nz) from an int (cells along the longest side, others follow the aspect
     ratio) or from an explicit triple."""
-    if isinstance(resolution, int) or (hasattr(resolution, "__len__") and len(resolution) == 1):
-        n = int(resolution if isinstance(resolution, int) else resolution[0])
-        if n < 1:
-            raise ValueError(f"grid.resolution must be positive, got {n}")
+    value("grid.resolution", resolution, SIZE)
+    if not isinstance(resolution, (list, tuple)) or len(resolution) == 1:
+        n = int(resolution if not isinstance(resolution, (list, tuple)) else resolution[0])
         ext = [float(e) for e in extent]
         longest = max(ext)
         return tuple(max(1, round(n * e / longest)) for e in ext)  # type: ignore[return-value]
-    res = tuple(int(r) for r in resolution)
-    if len(res) != 3 or min(res) < 1:
-        raise ValueError(f"grid.resolution must be an int or [nx, ny, nz] of positive ints, got {resolution}")
-    return res  # type: ignore[return-value]
+    return tuple(int(r) for r in resolution)  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)
@@ -36,12 +39,18 @@ class VoxelGrid:
     bbox_max: tuple[float, float, float]
     resolution: tuple[int, int, int]
 
+    def __post_init__(self) -> None:
+        lo, hi = checked_box(self.bbox_min, self.bbox_max)
+        cells = tuple(int(n) for n in value("VoxelGrid.resolution", as_sequence(self.resolution), CELLS))
+        object.__setattr__(self, "bbox_min", lo)
+        object.__setattr__(self, "bbox_max", hi)
+        object.__setattr__(self, "resolution", cells)
+
     @classmethod
     def from_box(cls, bbox_min, bbox_max, resolution) -> VoxelGrid:
-        lo = tuple(float(v) for v in bbox_min)
-        hi = tuple(float(v) for v in bbox_max)
-        if any(h <= l for l, h in zip(lo, hi)):
-            raise ValueError(f"bounding box is empty: min {lo}, max {hi}")
+        """The box ``bbox_min``..``bbox_max`` cut into ``resolution`` cells: an int (along the
+        longest side, the others following the aspect ratio) or (nx, ny, nz)."""
+        lo, hi = checked_box(bbox_min, bbox_max)
         ext = [h - l for l, h in zip(lo, hi)]
         return cls(lo, hi, resolution_for_box(resolution, ext))
 
@@ -105,3 +114,18 @@ class VoxelGrid:
         """Same box, resolution multiplied by ``factor`` (coarse-to-fine, finer phantoms)."""
         res = tuple(max(1, round(r * factor)) for r in self.resolution)
         return VoxelGrid(self.bbox_min, self.bbox_max, res)  # type: ignore[arg-type]
+
+
+def checked_box(bbox_min, bbox_max, owner: str = "VoxelGrid") -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The corners of a box as float triples, each three finite numbers, min < max; errors
+    name ``owner.bbox_min`` / ``owner.bbox_max``."""
+    lo = tuple(float(v) for v in value(f"{owner}.bbox_min", as_sequence(bbox_min), POINT))
+    hi = tuple(float(v) for v in value(f"{owner}.bbox_max", as_sequence(bbox_max), POINT))
+    if any(h <= l for l, h in zip(lo, hi)):
+        raise wrong_value(f"{owner}.bbox_max", hi, f"above bbox_min {lo} on every axis (the box is empty)")
+    return lo, hi
+
+
+def as_sequence(given):
+    """A tensor or array (of a point, of a size) as a list of Python numbers; others as given."""
+    return given.tolist() if hasattr(given, "tolist") and not isinstance(given, (list, tuple)) else given

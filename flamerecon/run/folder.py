@@ -6,6 +6,7 @@ it in place."""
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from flamerecon.arguments import fields, instance, tensor, value
 from flamerecon.device import resolve_device
 from flamerecon.errors import RunFolderError
 from flamerecon.evaluate.scores import native_scores, score, write_renders
@@ -25,6 +27,7 @@ from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.export import load_density, save_density
 from flamerecon.outputs.figures import top_view
+from flamerecon.rules import integer, list_of
 from flamerecon.run.guard import StopSolve
 from flamerecon.run.hook import log_pictures
 from flamerecon.run.summary import flat_metrics
@@ -221,6 +224,13 @@ class Run:
     solver: dict  # density.npz's record of the solve
     metrics: dict  # metrics.json as written ({} when absent)
 
+    def __post_init__(self) -> None:
+        fields(self)
+        tensor("Run.density", self.density, "(C, nz, ny, nx) on the grid", shape=(None, *self.grid.shape))
+        views = list_of(integer(0, self.scene.num_views - 1), what="a list of the scene's view indices")
+        for name in ("train", "holdout"):
+            value(f"Run.{name}", getattr(self, name), views)
+
     def score(self, native: bool = False) -> dict:
         """The run's metrics recomputed from its density (as metrics.json has them, less
         ``solver``); with ``native`` also at the capture's native resolution."""
@@ -236,6 +246,9 @@ class Run:
 def load_run(run_dir: str | Path, device: str = "auto") -> Run:
     """A finished CLI run folder (``.hydra/config.yaml``, density.npz, cameras.json,
     metrics.json) back as a :class:`Run`: its options, scene, density and scores."""
+    instance("load_run.run_dir", run_dir, (str, os.PathLike), "the path of a run folder")
+    instance("load_run.device", device, (str, torch.device), "a device name (auto, cpu, cuda, cuda:N)")
+    device = resolve_device(device, "load_run.device")
     run_dir = Path(run_dir)
     options, scene_options = run_options(run_dir)
     saved = load_density(run_dir / "density.npz")
@@ -245,7 +258,7 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
     nz, ny, nx = saved.density.shape[1:]
     grid = VoxelGrid(lo, hi, (nx, ny, nz))
     check_density_fits(run_dir / "density.npz", saved, scene, scene_grid(options.grid, scene), run_dir / CONFIG_FILE)
-    volume = torch.from_numpy(saved.density).to(resolve_device(device))
+    volume = torch.from_numpy(saved.density).to(device)
     with np.load(run_dir / "density.npz") as f:
         solver = json.loads(str(f["solver"])) if "solver" in f.files else {}
     metrics_path = run_dir / "metrics.json"

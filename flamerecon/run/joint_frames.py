@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from flamerecon.errors import ConfigError
+from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.fit.joint_frames import (
     JointFrame,
     JointFramesOptions,
@@ -60,8 +60,10 @@ def joint_frames_options(cfg: DictConfig) -> JointFramesOptions:
     """The ``temporal:`` node as typed options (absent keys keep their defaults)."""
     node = OmegaConf.to_container(cfg.temporal, resolve=True) if cfg.get("temporal") is not None else {}
     try:
-        return JointFramesOptions(**node).check()
-    except TypeError as err:
+        return JointFramesOptions(**node)
+    except FlameReconError:
+        raise
+    except TypeError as err:  # an unknown key
         raise ConfigError(f"temporal: {err}; the keys are l2, tv, tol, motion, max_shift") from None
 
 

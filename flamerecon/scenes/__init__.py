@@ -9,21 +9,32 @@ from flamerecon.scenes.base import Scene, SceneError
 
 #: scene name -> loader taking the ``scene`` config node (a mapping) and returning a Scene.
 SCENE_LOADERS: dict[str, Callable[..., Scene]] = {}
+#: scene name -> the keys of the ``scene`` node its loader reads (``name`` included).
+SCENE_KEYS: dict[str, frozenset[str]] = {}
 
 
-def register_scene(name: str):
+def register_scene(name: str, keys: tuple[str, ...] | None = None):
+    """Register a loader as ``scene.name=name``; ``keys``: the options it reads (the API
+    refuses others by name; None: any)."""
+
     def deco(fn):
         SCENE_LOADERS[name] = fn
+        if keys is not None:
+            SCENE_KEYS[name] = frozenset(("name", *keys))
         return fn
 
     return deco
 
 
+def register_built_in() -> None:
+    """Register the loaders that ship with flamerecon (imported on first use: they are heavy)."""
+    from flamerecon.scenes import nerf, opencv_calib, pinf, synthetic  # noqa: F401  (registers built-in loaders)
+
+
 def load_scene(cfg) -> Scene:
     """Load the scene described by the ``scene`` config node (needs ``cfg.name``); the scene
     keeps the node as plain Python in ``meta["config"]`` (see :func:`load_frame`)."""
-    from flamerecon.scenes import nerf, opencv_calib, pinf, synthetic  # noqa: F401  (registers built-in loaders)
-
+    register_built_in()
     name = cfg["name"]
     if name not in SCENE_LOADERS:
         raise SceneError(f"scene.name: unknown scene '{name}'; choose one of {sorted(SCENE_LOADERS)}")
@@ -41,4 +52,5 @@ def load_frame(scene: Scene, frame: int) -> Scene:
     return load_scene({**config, "frame": int(frame)})
 
 
-__all__ = ["SCENE_LOADERS", "Scene", "SceneError", "load_frame", "load_scene", "register_scene"]
+__all__ = ["SCENE_KEYS", "SCENE_LOADERS", "Scene", "SceneError", "load_frame", "load_scene", "register_built_in",
+           "register_scene"]

@@ -7,8 +7,9 @@ from dataclasses import dataclass, field
 import torch
 from kornia.geometry.camera import PinholeCamera
 
+from flamerecon.arguments import fields, one_or_many, tensor
 from flamerecon.errors import FlameReconError
-from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.geometry.grid import VoxelGrid, checked_box
 from flamerecon.geometry.photometry import delinearize
 
 
@@ -48,6 +49,18 @@ class Scene:
     meta: dict = field(default_factory=dict)
     response: dict | None = None
     recorded_images: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        self.views, self.default_holdout = one_or_many(self.views), one_or_many(self.default_holdout)
+        self.bbox_min, self.bbox_max = checked_box(self.bbox_min, self.bbox_max, "Scene")
+        fields(self)
+        images = tensor("Scene.images", self.images, "(B, C, H, W) in [0, 1]", ndim=4)
+        self.images = images.float()  # float32, as every loader gives them
+        B, _, H, W = images.shape
+        tensor("Scene.masks", self.masks, "(B, H, W) silhouettes", shape=(B, H, W), kind="bool", null=True)
+        tensor("Scene.truth", self.truth, "(C, nz, ny, nx)", ndim=4, null=True)
+        tensor("Scene.recorded_images", self.recorded_images, "(B, C, H, W) like images", shape=images.shape,
+               null=True)
 
     def to_recorded(self, images: torch.Tensor) -> torch.Tensor:
         """Linear images (..., C, H, W), e.g. renders, in the units the cameras record (the

@@ -22,6 +22,9 @@ from flamerecon.resources import checkout_root
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.frames import is_link_loop
 
+#: the ``scene`` options every capture loader reads (each adds its own).
+CAPTURE_KEYS = ("root", "frame", "downscale", "channels", "gamma", "black_level", "bbox", "silhouette")
+
 
 def option(cfg, key: str, default=None):
     """``cfg[key]`` for a dict or OmegaConf node, ``default`` when absent or null."""

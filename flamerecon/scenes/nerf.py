@@ -28,6 +28,7 @@ from flamerecon.geometry.cameras import opengl_c2w_to_opencv_w2c
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.calibration import (
+    CAPTURE_KEYS,
     box_from_value,
     check_image_size,
     check_rigid,
@@ -89,7 +90,7 @@ def _duplicate(path, where: str, file_path: str, first: int, source=None, what: 
             f"frames[{first}]; list each view once (a held-out view's copy would be fitted)")
 
 
-@register_scene("nerf")
+@register_scene("nerf", keys=(*CAPTURE_KEYS, "file", "holdout"))
 def load_nerf(cfg) -> Scene:
     """Load a ``transforms.json`` capture as a Scene (views in file order)."""
     root = resolve_root(option(cfg, "root"))

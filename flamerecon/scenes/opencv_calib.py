@@ -33,6 +33,7 @@ import yaml
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.calibration import (
+    CAPTURE_KEYS,
     box_from_value,
     check_image_size,
     check_intrinsics,
@@ -192,7 +193,7 @@ def _expected_size(entry: dict, file, where: str) -> tuple[int, int] | None:
     return int(h), int(w)
 
 
-@register_scene("opencv")
+@register_scene("opencv", keys=(*CAPTURE_KEYS, "calibration", "holdout"))
 def load_opencv(cfg) -> Scene:
     """Load cameras calibrated with OpenCV (K, dist, R|rvec, t) and their images as a Scene."""
     root = resolve_root(option(cfg, "root"))

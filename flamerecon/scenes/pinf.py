@@ -24,6 +24,7 @@ from flamerecon.geometry.cameras import opengl_c2w_to_opencv_w2c
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.calibration import (
+    CAPTURE_KEYS,
     check_image_size,
     check_rigid,
     make_scene,
@@ -64,8 +65,8 @@ def _camera_entries(info: dict, path: Path) -> list[tuple[str, dict, bool]]:
     return entries
 
 
-@register_scene("scalarflow")
-@register_scene("pinf")
+@register_scene("scalarflow", keys=CAPTURE_KEYS)
+@register_scene("pinf", keys=CAPTURE_KEYS)
 def load_pinf(cfg) -> Scene:
     """Load one frame of a PINF/HyFluid capture as a Scene (views in file order)."""
     root = resolve_root(option(cfg, "root"))

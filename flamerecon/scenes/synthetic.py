@@ -129,7 +129,8 @@ def downscale(images: torch.Tensor, cams, factor: int):
     return small, make_cameras(K, cams.extrinsics, h, w)
 
 
-@register_scene("synthetic")
+@register_scene("synthetic", keys=("n_cameras", "width", "height", "downscale", "frame", "seed",
+                                         "phantom_resolution", "phantom_step", "noise", "peak"))
 def load(cfg) -> Scene:
     """Config keys: n_cameras, width, height (the native size), downscale (the working size is
     width // downscale x height // downscale), phantom_resolution, phantom_step, noise, frame,

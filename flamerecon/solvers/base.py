@@ -13,13 +13,16 @@ voxels), ``b`` (N, C) the pixel values and ``x`` (M, C) the voxel densities. The
 from __future__ import annotations
 
 import inspect
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
 
+from flamerecon.arguments import conforms, tensor, value, wrong_type, wrong_value
 from flamerecon.operators.base import LinearOperator, norm_sq
+from flamerecon.rules import integer, list_of, number
 
 
 @dataclass
@@ -35,6 +38,20 @@ class Problem:
     l1: float = 0.0
     grid_shape: tuple[int, int, int] | None = None
     voxel_index: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if not conforms(self.A, LinearOperator):
+            raise wrong_type("Problem.A", self.A, "a LinearOperator (shape (N, M), forward, adjoint)")
+        N, M = (int(n) for n in self.A.shape)
+        self.b = tensor("Problem.b", self.b, "(N, C) with N = A.shape[0]", shape=(N, None), finite=True)
+        self.l1 = float(value("Problem.l1", self.l1, number(0)))
+        value("Problem.grid_shape", self.grid_shape, list_of(integer(1), 3, "(nz, ny, nx) of integers >= 1"),
+              null=True)
+        self.voxel_index = index = tensor("Problem.voxel_index", self.voxel_index, "(M,) with M = A.shape[1]", shape=(M,),
+                       kind="integer", null=True)
+        if index is not None and self.grid_shape is not None and M and not (
+                0 <= int(index.min()) and int(index.max()) < math.prod(self.grid_shape)):
+            raise wrong_value("Problem.voxel_index", index, f"flat indices in [0, {math.prod(self.grid_shape)})")
 
     def objective_parts(self, x: torch.Tensor) -> dict[str, float]:
         """Data term 0.5||Ax-b||^2, L1 term l1*sum|x| and their sum, as Python floats."""
