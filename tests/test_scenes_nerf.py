@@ -80,7 +80,7 @@ BAD = [
         r"images/none: image file not found",
     ),
     (lambda d: d.pop("fl_x"), r"frames\[0\]\.camera_angle_x: missing \(and no fl_x\)"),
-    (lambda d: d.__setitem__("fl_x", -3), r"frames\[0\]\.fl_x: must be a positive"),
+    (lambda d: d.__setitem__("fl_x", -3), r"frames\[0\]\.fl_x: got -3; it must be > 0"),
     (
         lambda d: d["frames"][1]["transform_matrix"][2].__setitem__(1, 5.0),
         r"frames\[1\]\.transform_matrix: rotation",

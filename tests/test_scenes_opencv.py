@@ -178,7 +178,7 @@ BAD = [
     (
         "K",
         np.array([[50, 0, np.nan], [0, 50, 16], [0, 0, 1]]),
-        r"cameras\[1\]\.K: holds NaN or Inf",
+        r"cameras\[1\]\.K\.data: holds NaN or Inf",
     ),
     ("R", np.diag([1.0, 2.0, 1.0]), r"cameras\[1\]\.R: rotation is not orthonormal"),
     ("R", np.diag([1.0, 1.0, -1.0]), r"cameras\[1\]\.R: rotation has determinant -1"),

@@ -144,7 +144,7 @@ BAD_INFO = [
     ),
     (
         lambda i: _set(i, "camera_angle_x", -0.4),
-        r"train_videos\[1\]\.camera_angle_x: must be a positive",
+        r"train_videos\[1\]\.camera_angle_x: got -0\.4; it must be > 0 and < 3\.14159",
     ),
     (
         lambda i: _set(i, "transform_matrix", [[1, 0, 0], [0, 1, 0]]),
@@ -190,7 +190,7 @@ def test_bad_images_and_frames(tmp_path):
         load_pinf({"root": str(tmp_path / "missing")})
     (tmp_path / "cam02" / f"{FRAME:06d}.png").unlink()
     write_png(tmp_path / "cam02" / f"{FRAME:06d}.png", random_images(1)[0])
-    with pytest.raises(SceneError, match=r"scene\.downscale: must be a positive integer"):
+    with pytest.raises(SceneError, match=r"config: scene\.downscale: got 0; it must be an integer >= 1"):
         load_pinf({"root": str(tmp_path), "frame": FRAME, "downscale": 0})
     (tmp_path / "info.json").write_text("{not json")
     with pytest.raises(SceneError, match=r"info\.json: not valid JSON"):

@@ -15,18 +15,18 @@ def level_grids(levels: Sequence | None, fine: VoxelGrid) -> list[VoxelGrid]:
     level and than ``fine``: no more cells along any axis and not the same grid; ConfigError
     naming ``grid.levels`` otherwise."""
     grids = []
-    for level in levels or []:
-        value = level if isinstance(level, (int, float)) else list(level)
+    shown = [level if isinstance(level, (int, float)) else list(level) for level in levels or []]
+    for level in shown:
         try:
-            grids.append(VoxelGrid.from_box(fine.bbox_min, fine.bbox_max, value))
+            grids.append(VoxelGrid.from_box(fine.bbox_min, fine.bbox_max, level))
         except (ValueError, TypeError) as err:
             raise ConfigError(f"grid.levels: level {level}: {err}") from err
     for k, (a, b) in enumerate(zip(grids, [*grids[1:], fine])):
         if a.resolution == b.resolution or any(p > q for p, q in zip(a.resolution, b.resolution)):
-            what = f"level {list(levels)[k + 1]}" if k + 1 < len(grids) else "grid.resolution"
+            what = f"level {shown[k + 1]}" if k + 1 < len(grids) else "grid.resolution"
             mine, theirs = ("x".join(map(str, g.resolution)) for g in (a, b))
             raise ConfigError(
-                f"grid.levels: level {list(levels)[k]} ({mine} cells) is not coarser than {what} "
+                f"grid.levels: level {shown[k]} ({mine} cells) is not coarser than {what} "
                 f"({theirs} cells); list the levels coarsest first, each coarser than the next and "
                 "than grid.resolution, e.g. grid.levels=[16,32] for grid.resolution=64"
             )

@@ -21,6 +21,7 @@ from flamerecon.geometry.silhouettes import estimate_bbox, silhouettes
 from flamerecon.resources import checkout_root
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.frames import is_link_loop
+from flamerecon.scenes.values import read_array, read_float, read_int, read_matrix
 
 #: the ``scene`` options every capture loader reads (each adds its own).
 CAPTURE_KEYS = ("root", "frame", "downscale", "channels", "gamma", "black_level", "bbox", "silhouette")
@@ -74,40 +75,9 @@ def read_json_object(root: Path, file_name: str, expected: str) -> tuple[dict, P
     return data, path
 
 
-def matrix(value, shape: tuple[int, ...], file, field: str) -> np.ndarray:
-    """``value`` as a finite float64 array of ``shape``; SceneError naming file and field else."""
-    if value is None:
-        raise SceneError(f"{file}: {field}: missing")
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise SceneError(f"{file}: {field}: not a numeric array ({err})") from None
-    vector = len(shape) == 1 and sum(n > 1 for n in arr.shape) <= 1  # (3,), (3, 1), (1, 3)
-    if arr.size == int(np.prod(shape)) and arr.shape != shape and (arr.ndim <= 1 or vector):
-        arr = arr.reshape(shape)
-    if arr.shape != shape:
-        raise SceneError(f"{file}: {field}: expected shape {shape}, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise SceneError(f"{file}: {field}: holds NaN or Inf")
-    return arr
-
-
-def positive(value, file, field: str) -> float:
-    """``value`` as a finite positive float."""
-    if value is None:
-        raise SceneError(f"{file}: {field}: missing")
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise SceneError(f"{file}: {field}: not a number ({value!r})") from None
-    if not np.isfinite(x) or x <= 0:
-        raise SceneError(f"{file}: {field}: must be a positive finite number, got {value}")
-    return x
-
-
 def check_intrinsics(K: np.ndarray, file, field: str) -> np.ndarray:
     """A 3x3 pinhole K with positive focal lengths and last row (0, 0, 1)."""
-    K = matrix(K, (3, 3), file, field)
+    K = read_matrix(K, (3, 3), file, field)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise SceneError(
             f"{file}: {field}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}"
@@ -123,7 +93,7 @@ def check_rotation(
     R: np.ndarray, file, field: str, tol: float = 1e-3, proper: bool = True
 ) -> np.ndarray:
     """An orthonormal 3x3 (R R^T = I within ``tol``), with det R = +1 when ``proper``."""
-    R = matrix(R, (3, 3), file, field)
+    R = read_matrix(R, (3, 3), file, field)
     err = float(np.abs(R @ R.T - np.eye(3)).max())
     if err > tol:
         raise SceneError(f"{file}: {field}: rotation is not orthonormal (|R R^T - I| = {err:.2g})")
@@ -134,7 +104,7 @@ def check_rotation(
 
 def check_rigid(T: np.ndarray, file, field: str, proper: bool = True) -> np.ndarray:
     """A 4x4 rigid transform: orthonormal rotation block, last row (0, 0, 0, 1)."""
-    T = matrix(T, (4, 4), file, field)
+    T = read_matrix(T, (4, 4), file, field)
     if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         raise SceneError(f"{file}: {field}: last row must be [0, 0, 0, 1], got {T[3].tolist()}")
     check_rotation(T[:3, :3], file, field, proper=proper)
@@ -144,21 +114,18 @@ def check_rigid(T: np.ndarray, file, field: str, proper: bool = True) -> np.ndar
 def check_image_size(
     image: np.ndarray, height: int, width: int, image_file, calib_file, field: str
 ):
-    """SceneError when an image's size disagrees with its calibration."""
+    """SceneError when an image's size disagrees with its calibration's (integers, as
+    :func:`~flamerecon.scenes.values.read_int` gives them)."""
     h, w = image.shape[:2]
-    if (h, w) != (int(height), int(width)):
+    if (h, w) != (height, width):
         raise SceneError(
-            f"{image_file}: image is {w}x{h} (WxH) but {calib_file}: {field} says "
-            f"{int(width)}x{int(height)}"
+            f"{image_file}: image is {w}x{h} (WxH) but {calib_file}: {field} says {width}x{height}"
         )
 
 
 def downscale_factor(cfg) -> int:
     """``scene.downscale`` as a positive int (1 = native resolution)."""
-    value = option(cfg, "downscale", 1)
-    if isinstance(value, bool) or int(value) != value or int(value) < 1:
-        raise SceneError(f"config: scene.downscale: must be a positive integer, got {value!r}")
-    return int(value)
+    return read_int(option(cfg, "downscale", 1), "config", "scene.downscale")
 
 
 def downscale_view(image: np.ndarray, K: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
@@ -239,8 +206,9 @@ def build_views(
         Ks_small.append(k)
     small = to_channels(small, option(cfg, "channels", "auto"))
     recorded = stack_views(small, sources)
+    black_level = read_float(option(cfg, "black_level", 0.0), "config", "scene.black_level")
     try:
-        batch = linearize(recorded, option(cfg, "gamma", 1.0), float(option(cfg, "black_level", 0.0)))
+        batch = linearize(recorded, option(cfg, "gamma", 1.0), black_level)
     except ValueError as err:
         raise SceneError(f"config: {err}") from None
     H, W = batch.shape[-2:]
@@ -263,7 +231,7 @@ def box_from_config(cfg, field: str = "scene.bbox"):
 
 def box_from_value(value, file, field: str):
     """A [[min xyz], [max xyz]] value checked: finite, min < max on every axis."""
-    box = matrix(value, (2, 3), file, field)
+    box = read_matrix(value, (2, 3), file, field)
     if not (box[0] < box[1]).all():
         raise SceneError(
             f"{file}: {field}: min must be below max on every axis, got {box.tolist()}"
@@ -296,14 +264,9 @@ def choose_box(cfg, file_box, cams, images: torch.Tensor, source) -> tuple[tuple
 
 def distortion(value, file, field: str) -> np.ndarray:
     """OpenCV distortion coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]) as a flat array."""
-    try:
-        d = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as err:
-        raise SceneError(f"{file}: {field}: not a list of numbers ({err})") from None
+    d = read_array(value if value is not None else [], file, field).reshape(-1)
     if d.size not in (0, 4, 5, 8, 12, 14):
         raise SceneError(f"{file}: {field}: expected 4, 5, 8, 12 or 14 coefficients, got {d.size}")
-    if not np.isfinite(d).all():
-        raise SceneError(f"{file}: {field}: holds NaN or Inf")
     return d
 
 
@@ -335,6 +298,7 @@ def make_scene(
         meta={"frame": frame, "files": [str(s) for s in sources], "bbox_source": str(box_source),
               **meta},
         response=None if recorded is None else {
-            "gamma": option(cfg, "gamma", 1.0), "black_level": float(option(cfg, "black_level", 0.0))},
+            "gamma": option(cfg, "gamma", 1.0), "black_level": read_float(option(cfg, "black_level", 0.0), "config",
+                                                                          "scene.black_level")},
         recorded_images=recorded,
     )

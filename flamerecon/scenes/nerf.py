@@ -32,15 +32,21 @@ from flamerecon.scenes.calibration import (
     box_from_value,
     check_image_size,
     check_rigid,
-    distortion,
     make_scene,
     option,
-    positive,
     read_json_object,
     resolve_root,
     undistort,
 )
 from flamerecon.scenes.frames import read_path_frame
+from flamerecon.scenes.values import (
+    FIELD_OF_VIEW,
+    POSITIVE,
+    read_float,
+    read_int,
+    read_names,
+    read_text,
+)
 
 _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 
@@ -48,30 +54,21 @@ _DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 def _intrinsics(params: dict, width: int, height: int, path, where: str) -> np.ndarray:
     """K (pixel centres at +0.5) from fl_x/fl_y/cx/cy or camera_angle_x/y."""
     if "fl_x" in params:
-        fx = positive(params["fl_x"], path, f"{where}fl_x")
+        fx = read_float(params["fl_x"], path, f"{where}fl_x", POSITIVE)
     elif "camera_angle_x" in params:
-        angle = positive(params["camera_angle_x"], path, f"{where}camera_angle_x")
-        if angle >= math.pi:
-            raise SceneError(
-                f"{path}: {where}camera_angle_x: {angle} rad is not a field of view below pi"
-            )
+        angle = read_float(params["camera_angle_x"], path, f"{where}camera_angle_x", FIELD_OF_VIEW)
         fx = 0.5 * width / math.tan(0.5 * angle)
     else:
         raise SceneError(f"{path}: {where}camera_angle_x: missing (and no fl_x)")
     if "fl_y" in params:
-        fy = positive(params["fl_y"], path, f"{where}fl_y")
+        fy = read_float(params["fl_y"], path, f"{where}fl_y", POSITIVE)
     elif "camera_angle_y" in params:
-        fy = (
-            0.5
-            * height
-            / math.tan(0.5 * positive(params["camera_angle_y"], path, f"{where}camera_angle_y"))
-        )
+        angle = read_float(params["camera_angle_y"], path, f"{where}camera_angle_y", FIELD_OF_VIEW)
+        fy = 0.5 * height / math.tan(0.5 * angle)
     else:
         fy = fx
-    cx = float(params.get("cx", 0.5 * width))
-    cy = float(params.get("cy", 0.5 * height))
-    if not (math.isfinite(cx) and math.isfinite(cy)):
-        raise SceneError(f"{path}: {where}cx/cy: NaN or Inf")
+    cx = read_float(params.get("cx", 0.5 * width), path, f"{where}cx")
+    cy = read_float(params.get("cy", 0.5 * height), path, f"{where}cy")
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
@@ -98,16 +95,14 @@ def load_nerf(cfg) -> Scene:
     if not isinstance(data.get("frames"), list) or not data["frames"]:
         raise SceneError(f"{path}: frames: missing or empty")
     folder = path.parent
-    frame = int(option(cfg, "frame", 0))
+    frame = read_int(option(cfg, "frame", 0), "config", "scene.frame", 0)
     images, Ks, w2cs, sources, file_paths = [], [], [], [], []
     seen: dict[str, int] = {}  # normalized file_path -> first frame index
     for i, entry in enumerate(data["frames"]):
         where = f"frames[{i}]."
         if not isinstance(entry, dict):
             raise SceneError(f"{path}: frames[{i}]: must be an object")
-        file_path = entry.get("file_path")
-        if not isinstance(file_path, str) or not file_path:
-            raise SceneError(f"{path}: {where}file_path: missing")
+        file_path = read_text(entry.get("file_path"), path, f"{where}file_path")
         key = os.path.normpath(file_path)
         if key in seen:
             raise SceneError(_duplicate(path, where, file_path, seen[key]))
@@ -120,11 +115,11 @@ def load_nerf(cfg) -> Scene:
             raise SceneError(_duplicate(path, where, file_path, same[0], source))
         H, W = image.shape[:2]
         if "w" in params or "h" in params:
-            check_image_size(
-                image, params.get("h", H), params.get("w", W), source, path, f"{where}w/h"
-            )
+            h = read_int(params.get("h", H), path, f"{where}h")
+            w = read_int(params.get("w", W), path, f"{where}w")
+            check_image_size(image, h, w, source, path, f"{where}w/h")
         K = _intrinsics(params, W, H, path, where)
-        dist = distortion([params.get(k, 0.0) for k in _DISTORTION_KEYS], path, f"{where}k1..k3")
+        dist = np.array([read_float(params.get(k, 0.0), path, f"{where}{k}") for k in _DISTORTION_KEYS])
         K_opencv = K - np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
         images.append(undistort(image, K_opencv, dist))
         Ks.append(K)
@@ -137,5 +132,5 @@ def load_nerf(cfg) -> Scene:
             raise SceneError(_duplicate(path, f"frames[{i}].", file_paths[i], names.index(name),
                                         what=f"view name '{name}'"))
     file_box = box_from_value(data["bbox"], path, "bbox") if "bbox" in data else None
-    holdout = list(option(cfg, "holdout", []))
+    holdout = read_names(option(cfg, "holdout", []), "config", "scene.holdout")
     return make_scene(cfg, path, "nerf", names, images, Ks, w2cs, sources, file_box, holdout, frame)

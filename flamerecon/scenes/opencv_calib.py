@@ -24,12 +24,15 @@ name inside ``root``; default: the first of calibration.yaml/.yml/.xml/.json), `
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
 
+from flamerecon.arguments import one_or_many
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.calibration import (
@@ -40,12 +43,20 @@ from flamerecon.scenes.calibration import (
     check_rotation,
     distortion,
     make_scene,
-    matrix,
     option,
     resolve_root,
     undistort,
 )
 from flamerecon.scenes.frames import read_camera_frame, read_path_frame
+from flamerecon.scenes.values import (
+    read_array,
+    read_int,
+    read_matrix,
+    read_names,
+    read_size,
+    read_text,
+    refuse,
+)
 
 CALIBRATION_SUFFIXES = (".yaml", ".yml", ".xml", ".json")
 _ALIASES = {
@@ -60,22 +71,50 @@ _ALIASES = {
 }
 
 
-def _from_file_node(node: cv2.FileNode):
-    """A cv2.FileNode as plain Python: maps, lists, numbers, strings, arrays for matrices."""
+def _from_file_node(node: cv2.FileNode, file, field: str = ""):
+    """A cv2.FileNode as plain Python: maps, lists, numbers, strings; an ``opencv-matrix`` (or
+    ``opencv-nd-matrix``) as a float64 array of its sizes, read and checked here (a truncated
+    or inconsistent one is a SceneError naming ``field``, never OpenCV's own error)."""
     if node.isNone():
         return None
     if node.isMap():
         keys = node.keys()
-        if {"rows", "cols", "data"} <= set(keys) or {"sizes", "data"} <= set(keys):
-            return node.mat()  # opencv-matrix or opencv-nd-matrix
-        return {k: _from_file_node(node.getNode(k)) for k in keys}
+        value = {k: _from_file_node(node.getNode(k), file, f"{field}.{k}" if field else k) for k in keys}
+        return _opencv_matrix(value, file, field) if _is_matrix(value) else value
     if node.isSeq():
-        return [_from_file_node(node.at(i)) for i in range(node.size())]
+        return [_from_file_node(node.at(i), file, f"{field}[{i}]") for i in range(node.size())]
     if node.isString():
         return node.string()
     if node.isInt():
         return int(node.real())
     return node.real()
+
+
+def _is_matrix(value: dict) -> bool:
+    """Whether a map is an OpenCV matrix (cut short too: no camera field has these names)."""
+    return {"rows", "cols"} <= set(value) or "sizes" in value or {"dt", "data"} <= set(value)
+
+
+def _opencv_matrix(value: dict, file, field: str) -> np.ndarray:
+    """An ``opencv-matrix`` map {rows, cols, dt, data} (or ``opencv-nd-matrix`` {sizes, dt,
+    data}) as a float64 array: sizes from their fields, ``data`` holding exactly their
+    product times the channels of ``dt`` (``3d``: 3) numbers."""
+    if "sizes" in value:
+        sizes = [read_int(n, file, f"{field}.sizes[{i}]") for i, n in enumerate(one_or_many(value["sizes"]))]
+    else:
+        sizes = [read_int(value.get(k), file, f"{field}.{k}") for k in ("rows", "cols")]
+    dt = value.get("dt")
+    if not isinstance(dt, str) or not re.fullmatch(r"\d*[ucwsifdh]", dt):
+        raise refuse(dt, file, f"{field}.dt", "an OpenCV element type such as d, f or 3d")
+    channels = int(dt[:-1] or 1)
+    data = value.get("data")  # a FileStorage sequence of one number reads back as the number
+    data = read_array(None if data is None else one_or_many(data), file, f"{field}.data").reshape(-1)
+    want = math.prod(sizes) * channels
+    if data.size != want:
+        raise SceneError(f"{file}: {field}.data: holds {data.size} numbers but {field} is "
+                         f"{'x'.join(map(str, sizes))} with {channels} channel(s), {want} numbers; the file "
+                         "is truncated or was edited inconsistently")
+    return data.reshape(*sizes, channels) if channels > 1 else data.reshape(sizes)
 
 
 def read_calibration_file(path: Path) -> dict:
@@ -91,18 +130,7 @@ def read_calibration_file(path: Path) -> dict:
         with open(path, "rb") as f:
             head = f.read(16)
         if suffix == ".xml" or head.startswith(b"%YAML"):
-            try:
-                fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-            except cv2.error as err:
-                raise SceneError(
-                    f"{path}: cv2.FileStorage cannot parse it ({str(err).strip()[:120]})"
-                ) from None
-            try:
-                if not fs.isOpened():
-                    raise SceneError(f"{path}: cv2.FileStorage cannot open it")
-                data = _from_file_node(fs.root())
-            finally:
-                fs.release()
+            data = _read_file_storage(path)
         else:
             try:
                 with open(path) as f:
@@ -112,6 +140,22 @@ def read_calibration_file(path: Path) -> dict:
     if not isinstance(data, dict):
         raise SceneError(f"{path}: top level must be a map")
     return data
+
+
+def _read_file_storage(path: Path) -> dict:
+    """A file cv2.FileStorage wrote (YAML or XML) as plain Python; one it cannot parse (cut
+    short, malformed) is a SceneError naming the file."""
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as err:  # OpenCV's parse errors surface as either
+        cause = str(err.__cause__ or err).strip().splitlines()[-1][:120]
+        raise SceneError(f"{path}: cv2.FileStorage cannot parse it, is it cut short or malformed? ({cause})") from None
+    try:
+        if not fs.isOpened():
+            raise SceneError(f"{path}: cv2.FileStorage cannot open it")
+        return _from_file_node(fs.root(), path)
+    finally:
+        fs.release()
 
 
 def _get(entry: dict, key: str):
@@ -145,14 +189,16 @@ def _camera_list(root: Path, calibration) -> tuple[list[tuple[str, dict, Path, s
         raise SceneError(f"{path}: calibration file not found")
     data = read_calibration_file(path)
     cameras = data.get("cameras")
+    if isinstance(cameras, dict) and "name" in cameras:
+        cameras = [cameras]  # an XML sequence of one camera reads back as that camera
     if isinstance(cameras, dict):
         items = [(str(k), v, f"cameras.{k}.") for k, v in cameras.items()]
     elif isinstance(cameras, list) and cameras:
         items = []
         for i, v in enumerate(cameras):
-            if not isinstance(v, dict) or not v.get("name"):
+            if not isinstance(v, dict) or v.get("name") is None:
                 raise SceneError(f"{path}: cameras[{i}].name: missing")
-            items.append((str(v["name"]), v, f"cameras[{i}]."))
+            items.append((read_text(v["name"], path, f"cameras[{i}].name"), v, f"cameras[{i}]."))
     else:
         raise SceneError(f"{path}: cameras: missing or empty (a list of camera maps)")
     for _, v, where in items:
@@ -170,11 +216,11 @@ def _pose(entry: dict, file, where: str) -> np.ndarray:
         key, rvec = _get(entry, "rvec")
         if rvec is None:
             raise SceneError(f"{file}: {where}R: missing (give R or rvec)")
-        R = cv2.Rodrigues(matrix(rvec, (3,), file, f"{where}{key}"))[0]
+        R = cv2.Rodrigues(read_matrix(rvec, (3,), file, f"{where}{key}"))[0]
     key, t = _get(entry, "t")
     w2c = np.eye(4)
     w2c[:3, :3] = R
-    w2c[:3, 3] = matrix(t, (3,), file, f"{where}{key}")
+    w2c[:3, 3] = read_matrix(t, (3,), file, f"{where}{key}")
     return w2c
 
 
@@ -182,15 +228,15 @@ def _expected_size(entry: dict, file, where: str) -> tuple[int, int] | None:
     """(H, W) the calibration states, or None."""
     key, size = _get(entry, "image_size")
     if size is not None:
-        w, h = matrix(size, (2,), file, f"{where}{key}")
-        return int(h), int(w)
-    _, w = _get(entry, "width")
-    _, h = _get(entry, "height")
+        w, h = read_size(size, file, f"{where}{key}", "[W, H]")
+        return h, w
+    w_key, w = _get(entry, "width")
+    h_key, h = _get(entry, "height")
     if w is None and h is None:
         return None
     if w is None or h is None:
         raise SceneError(f"{file}: {where}width/height: give both or neither")
-    return int(h), int(w)
+    return read_int(h, file, f"{where}{h_key}"), read_int(w, file, f"{where}{w_key}")
 
 
 @register_scene("opencv", keys=(*CAPTURE_KEYS, "calibration", "holdout"))
@@ -200,7 +246,7 @@ def load_opencv(cfg) -> Scene:
     cameras, top, path = _camera_list(root, option(cfg, "calibration", None))
     folder = path.parent if path.is_file() else path
     data_folder = root if root.is_dir() else root.parent
-    frame = int(option(cfg, "frame", 0))
+    frame = read_int(option(cfg, "frame", 0), "config", "scene.frame", 0)
     names, images, Ks, w2cs, sources = [], [], [], [], []
     for name, entry, file, where in cameras:
         if name in names:
@@ -210,8 +256,8 @@ def load_opencv(cfg) -> Scene:
         key, dist = _get(entry, "dist")
         dist = distortion(dist, file, f"{where}{key}")
         w2c = _pose(entry, file, where)
-        if entry.get("image"):
-            image, source = read_path_frame(folder, str(entry["image"]), frame)
+        if entry.get("image") is not None:
+            image, source = read_path_frame(folder, read_text(entry["image"], file, f"{where}image"), frame)
         else:
             image, source = read_camera_frame(data_folder, name, frame)
         size = _expected_size(entry, file, where)
@@ -223,5 +269,7 @@ def load_opencv(cfg) -> Scene:
         names.append(name)
         sources.append(source)
     file_box = box_from_value(top["bbox"], path, "bbox") if "bbox" in top else None
-    holdout = list(option(cfg, "holdout", None) or top.get("holdout") or [])
+    given = option(cfg, "holdout", None)
+    holdout = (read_names(given, "config", "scene.holdout") if given  # else the file's
+               else read_names(top.get("holdout"), path, "holdout"))
     return make_scene(cfg, path, "opencv", names, images, Ks, w2cs, sources, file_box, holdout, frame)

@@ -28,13 +28,19 @@ from flamerecon.scenes.calibration import (
     check_image_size,
     check_rigid,
     make_scene,
-    matrix,
     option,
-    positive,
     read_json_object,
     resolve_root,
 )
 from flamerecon.scenes.frames import read_camera_frame
+from flamerecon.scenes.values import (
+    FIELD_OF_VIEW,
+    read_float,
+    read_int,
+    read_matrix,
+    read_size,
+    read_text,
+)
 
 
 def pinf_box(info: dict, file) -> tuple[tuple, tuple] | None:
@@ -43,7 +49,7 @@ def pinf_box(info: dict, file) -> tuple[tuple, tuple] | None:
         return None
     # PINF's column swap makes the matrix a reflection, so only orthonormality is required
     M = check_rigid(info.get("voxel_matrix"), file, "voxel_matrix", proper=False)
-    scale = matrix(info.get("voxel_scale"), (3,), file, "voxel_scale")
+    scale = read_matrix(info.get("voxel_scale"), (3,), file, "voxel_scale")
     if (scale <= 0).any():
         raise SceneError(f"{file}: voxel_scale: must be positive, got {scale.tolist()}")
     M = M[:, [2, 1, 0, 3]]  # PINF's column swap
@@ -72,28 +78,20 @@ def load_pinf(cfg) -> Scene:
     root = resolve_root(option(cfg, "root"))
     info, path = read_json_object(root, "info.json", "train_videos / test_videos")
     folder = path.parent
-    frame = int(option(cfg, "frame", 0))
+    frame = read_int(option(cfg, "frame", 0), "config", "scene.frame", 0)
     names, images, Ks, w2cs, sources, holdout = [], [], [], [], [], []
     for where, entry, held in _camera_entries(info, path):
         if not isinstance(entry, dict):
             raise SceneError(f"{path}: {where}: must be an object")
-        file_name = entry.get("file_name")
-        if not isinstance(file_name, str) or not file_name:
-            raise SceneError(f"{path}: {where}.file_name: missing")
+        file_name = read_text(entry.get("file_name"), path, f"{where}.file_name")
         name = Path(file_name).stem
         if name in names:
             raise SceneError(f"{path}: {where}.file_name: camera '{name}' appears twice")
-        H, W = matrix(entry.get("camera_hw"), (2,), path, f"{where}.camera_hw")
-        if H < 1 or W < 1 or H != int(H) or W != int(W):
-            raise SceneError(f"{path}: {where}.camera_hw: must be two positive integers [H, W]")
-        angle = positive(entry.get("camera_angle_x"), path, f"{where}.camera_angle_x")
-        if angle >= math.pi:
-            raise SceneError(
-                f"{path}: {where}.camera_angle_x: {angle} rad is not a field of view below pi"
-            )
+        H, W = read_size(entry.get("camera_hw"), path, f"{where}.camera_hw", "[H, W]")
+        angle = read_float(entry.get("camera_angle_x"), path, f"{where}.camera_angle_x", FIELD_OF_VIEW)
         c2w = check_rigid(entry.get("transform_matrix"), path, f"{where}.transform_matrix")
         frame_num = entry.get("frame_num")
-        if frame_num is not None and not 0 <= frame < int(frame_num):
+        if frame_num is not None and not frame < read_int(frame_num, path, f"{where}.frame_num"):
             raise SceneError(
                 f"{path}: {where}.frame_num: frame {frame} is outside its {frame_num} frames"
             )
@@ -109,5 +107,5 @@ def load_pinf(cfg) -> Scene:
             holdout.append(name)
     return make_scene(
         cfg, path, "scalarflow", names, images, Ks, w2cs, sources, pinf_box(info, path), holdout,
-        frame, **{k: info[k] for k in ("near", "far") if k in info},
+        frame, **{k: read_float(info[k], path, k) for k in ("near", "far") if k in info},
     )

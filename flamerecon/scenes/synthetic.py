@@ -20,6 +20,7 @@ from flamerecon.operators.projector import render_image
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.cache import cached
+from flamerecon.scenes.values import NONNEGATIVE, POSITIVE, read_float, read_int
 
 #: the modules whose code makes the rendered scene (part of its cache key)
 _RENDER_CODE = ("flamerecon.scenes.synthetic", "flamerecon.operators.projector", "flamerecon.geometry.grid", "flamerecon.geometry.cameras")
@@ -135,14 +136,14 @@ def load(cfg) -> Scene:
     """Config keys: n_cameras, width, height (the native size), downscale (the working size is
     width // downscale x height // downscale), phantom_resolution, phantom_step, noise, frame,
     seed, peak (brightest pixel before noise)."""
-    n = int(cfg.get("n_cameras", 8))
-    W, H = int(cfg.get("width", 320)), int(cfg.get("height", 240))
-    seed = int(cfg.get("seed", 0))
-    frame = int(cfg.get("frame", 0))
+    n = read_int(cfg.get("n_cameras", 8), "config", "scene.n_cameras", 2)
+    W, H = (read_int(cfg.get(k, default), "config", f"scene.{k}") for k, default in (("width", 320), ("height", 240)))
+    seed = read_int(cfg.get("seed", 0), "config", "scene.seed", 0)
+    frame = read_int(cfg.get("frame", 0), "config", "scene.frame", 0)
     cams = ring_cameras(n, W, H)
-    phantom = int(cfg.get("phantom_resolution", 128))
+    phantom = read_int(cfg.get("phantom_resolution", 128), "config", "scene.phantom_resolution", 2)
     truth_grid = VoxelGrid.from_box(BOX_MIN, BOX_MAX, phantom)
-    step = float(cfg.get("phantom_step", 0.5))
+    step = read_float(cfg.get("phantom_step", 0.5), "config", "scene.phantom_step", POSITIVE)
 
     def render() -> dict[str, torch.Tensor]:
         truth = flame_volume(truth_grid, seed, frame * SECONDS_PER_FRAME)
@@ -153,17 +154,15 @@ def load(cfg) -> Scene:
                "phantom_resolution": phantom, "phantom_step": step}
     found = cached("synthetic", options, render, [sys.modules[m] for m in _RENDER_CODE])
     truth, clean = found["truth"], found["clean"]
-    scale = float(cfg.get("peak", 0.85)) / float(clean.max().clamp_min(1e-12))
+    peak = read_float(cfg.get("peak", 0.85), "config", "scene.peak", POSITIVE)
+    scale = peak / float(clean.max().clamp_min(1e-12))
     clean, truth = clean * scale, truth * scale
     g = torch.Generator(device="cpu").manual_seed(seed + 1000 * frame + 7)
-    sigma = float(cfg.get("noise", 0.01))
+    sigma = read_float(cfg.get("noise", 0.01), "config", "scene.noise", NONNEGATIVE)
     # read noise sigma, growing with brightness like photon noise: std = sigma * sqrt(1 + 4 I)
     std = sigma * torch.sqrt(1 + 4 * clean.clamp_min(0))
     images = (clean + std * torch.randn(clean.shape, generator=g)).clamp(0, 1)
-    factor = cfg.get("downscale", 1)
-    if isinstance(factor, bool) or int(factor) != factor or int(factor) < 1:
-        raise SceneError(f"config: scene.downscale: must be a positive integer, got {factor!r}")
-    images, cams = downscale(images, cams, int(factor))
+    images, cams = downscale(images, cams, read_int(cfg.get("downscale", 1), "config", "scene.downscale"))
     views = [f"cam{i:02d}" for i in range(n)]
     return Scene(
         name="synthetic", views=views, cameras=cams, images=images,
