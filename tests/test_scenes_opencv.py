@@ -46,7 +46,9 @@ def camera_entries(dist: np.ndarray | None = None, rvec: bool = False) -> list[d
     return entries
 
 
-def write_filestorage(path: Path, entries: list[dict], bbox=None) -> None:
+def write_filestorage(path: Path, entries: list[dict], bbox=None, holdout=None) -> None:
+    """Cameras as cv2.FileStorage writes them (strings, ints and floats as such, arrays as
+    opencv-matrix), with a ``holdout`` sequence of names when given."""
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     fs.startWriteStruct("cameras", cv2.FileNode_SEQ)
     for e in entries:
@@ -54,21 +56,26 @@ def write_filestorage(path: Path, entries: list[dict], bbox=None) -> None:
         for key, value in e.items():
             fs.write(
                 key,
-                np.asarray(value, dtype=np.float64) if not isinstance(value, (str, int)) else value,
+                np.asarray(value, dtype=np.float64) if not isinstance(value, (str, int, float)) else value,
             )
         fs.endWriteStruct()
     fs.endWriteStruct()
     if bbox is not None:
         fs.write("bbox", np.asarray(bbox, dtype=np.float64))
+    if holdout is not None:
+        fs.startWriteStruct("holdout", cv2.FileNode_SEQ)
+        for name in holdout:
+            fs.write("", name)
+        fs.endWriteStruct()
     fs.release()
 
 
-def write_json(path: Path, entries: list[dict], bbox=None) -> None:
+def write_json(path: Path, entries: list[dict], bbox=None, holdout=(NAMES[1],)) -> None:
     plain = [
-        {k: (np.asarray(v).tolist() if not isinstance(v, (str, int)) else v) for k, v in e.items()}
+        {k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in e.items()}
         for e in entries
     ]
-    data = {"cameras": plain, "holdout": [NAMES[1]]}
+    data = {"cameras": plain, "holdout": holdout if isinstance(holdout, str) else list(holdout)}
     if bbox is not None:
         data["bbox"] = bbox
     path.write_text(json.dumps(data))
@@ -206,3 +213,129 @@ def test_missing_calibration_and_images(tmp_path):
     (tmp_path / "calibration.json").write_text(json.dumps({"cameras": [{"K": np.eye(3).tolist()}]}))
     with pytest.raises(SceneError, match=r"calibration\.json: cameras\[0\]\.name: missing"):
         load_opencv({"root": str(tmp_path)})
+
+
+def _set(key, value, camera=1, drop=()):
+    """A change of camera ``camera``'s entry: ``key`` set to ``value``, ``drop`` removed."""
+    def change(entries):
+        entries[camera][key] = value
+        for k in drop:
+            entries[camera].pop(k)
+        return entries
+    return change
+
+
+ALL, JSON = ("yaml", "xml", "json"), ("json",)
+#: (formats that can hold the damage, change of the camera entries, the message)
+DAMAGED_VALUES = {
+    "width as a string": (ALL, _set("width", "40"),
+                          r"cameras\[1\]\.width: got the string '40'; write a number \(an integer >= 1\) without quotes"),
+    "non-integer width": (ALL, _set("width", 40.5), r"cameras\[1\]\.width: got 40\.5; it must be an integer >= 1"),
+    "zero height": (ALL, _set("height", 0), r"cameras\[1\]\.height: got 0; it must be an integer >= 1"),
+    "negative width": (ALL, _set("width", -40), r"cameras\[1\]\.width: got -40; it must be an integer >= 1"),
+    "width as a bool": (JSON, _set("width", True), r"cameras\[1\]\.width: got True; it must be an integer >= 1"),
+    "width as a list": (ALL, _set("width", np.array([40.0, 41.0])),
+                        r"cameras\[1\]\.width: got \[.*40\.0.*41\.0.*\]; it must be an integer >= 1"),
+    "non-integer image_size": (ALL, _set("image_size", np.array([40.5, 32.0]), drop=("width", "height")),
+                               r"cameras\[1\]\.image_size: got \[40\.5, 32\.0\]; it must be \[W, H\] of integers >= 1"),
+    "image_size as a string": (ALL, _set("image_size", "40x32", drop=("width", "height")),
+                               r"cameras\[1\]\.image_size: got '40x32'; it must be a number"),
+    "image_size of three": (ALL, _set("image_size", np.array([40.0, 32.0, 3.0]), drop=("width", "height")),
+                            r"cameras\[1\]\.image_size: expected shape \(2,\), got \((1, )?3,?( 1)?\)"),
+    "a string in K": (JSON, _set("K", [["50", 0, 19.3], [0, 52, 15.1], [0, 0, 1]]),
+                      r"cameras\[1\]\.K \(item 0\): got the string '50'; write a number"),
+    "K as a map": (JSON, _set("K", {"fx": 50}), r"cameras\[1\]\.K: got \{'fx': 50\}; it must be a number"),
+    "t as one string": (ALL, _set("t", "0 0 3"), r"cameras\[1\]\.t: got '0 0 3'; it must be a number"),
+    "ragged t": (JSON, _set("t", [[0], [0, 1], [3]]),
+                 r"cameras\[1\]\.t: got \[\[0\], \[0, 1\], \[3\]\]; it must be an array of numbers with rows"),
+    "a string in dist": (JSON, _set("dist", ["-0.1", 0, 0, 0]),
+                         r"cameras\[1\]\.dist \(item 0\): got the string '-0\.1'"),
+    "a bool in rvec": (JSON, _set("rvec", [True, 0, 0], drop=("R",)),
+                       r"cameras\[1\]\.rvec \(item 0\): got True; it must be a number"),
+    "a list as the name": (JSON, _set("name", [1, 2]), r"cameras\[1\]\.name: got \[1, 2\]; it must be a non-empty string"),
+    "NaN focal length": (JSON, _set("K", [[float("nan"), 0, 19.3], [0, 52, 15.1], [0, 0, 1]]),
+                         r"cameras\[1\]\.K: holds NaN or Inf"),
+}
+CASES = [(name, fmt) for name, (formats, _, _) in DAMAGED_VALUES.items() for fmt in formats]
+
+
+@pytest.mark.parametrize("case, fmt", CASES, ids=[f"{fmt}: {name}" for name, fmt in CASES])
+def test_a_damaged_value_names_file_and_field(tmp_path, case, fmt):
+    _, change, message = DAMAGED_VALUES[case]
+    write_frames(tmp_path, random_images(len(NAMES)))
+    path = tmp_path / f"calibration.{fmt}"
+    entries = change(camera_entries())
+    (write_json if fmt == "json" else write_filestorage)(path, entries, BOX)
+    with pytest.raises(SceneError, match=message) as err:
+        load_opencv({"root": str(tmp_path), "frame": FRAME})
+    assert str(err.value).startswith(f"{path}: ") and "\n" not in str(err.value)
+
+
+#: (what is damaged, {format: (text written by cv2.FileStorage, its damaged text)}, the message)
+DAMAGED_TEXT = {
+    "a matrix with more rows than data": ({"yaml": ("rows: 3", "rows: 4"), "xml": ("<rows>3</rows>", "<rows>4</rows>")},
+                                          (r"cameras\[0\]\.K\.data: holds 9 numbers but cameras\[0\]\.K is 4x3 with "
+                                          r"1 channel\(s\), 12 numbers; the file is truncated")),
+    "rows that are not a number": ({"yaml": ("rows: 3", "rows: a"), "xml": ("<rows>3</rows>", "<rows>a</rows>")},
+                                   r"cameras\[0\]\.K\.rows: got 'a'; it must be an integer >= 1"),
+    "a matrix of no element type": ({"yaml": ("dt: d", "dt: q"), "xml": ("<dt>d</dt>", "<dt>q</dt>")},
+                                    r"cameras\[0\]\.K\.dt: got 'q'; it must be an OpenCV element type"),
+    "a word among the data": ({"yaml": ("data: [ 50.,", "data: [ fifty,"), "xml": ("50. 0.", "fifty 0.")},
+                              r"cameras\[0\]\.K\.data \(item 0\): got 'fifty'; it must be a number"),
+    "a width that is a word": ({"yaml": ("width: 40", "width: forty"), "xml": ("<width>40", "<width>forty")},
+                               r"cameras\[0\]\.width: got 'forty'; it must be an integer >= 1"),
+    "a quoted width": ({"yaml": ("width: 40", 'width: "40"'), "xml": ("<width>40", '<width>"40"')},
+                       r"cameras\[0\]\.width: got the string '40'; write a number"),
+}
+TEXT_CASES = [(name, fmt) for name in DAMAGED_TEXT for fmt in ("yaml", "xml")]
+
+
+@pytest.mark.parametrize("case, fmt", TEXT_CASES, ids=[f"{fmt}: {name}" for name, fmt in TEXT_CASES])
+def test_a_damaged_filestorage_file_names_file_and_field(tmp_path, case, fmt):
+    edits, message = DAMAGED_TEXT[case]
+    write_frames(tmp_path, random_images(len(NAMES)))
+    path = tmp_path / f"calibration.{fmt}"
+    write_filestorage(path, camera_entries(), BOX)
+    old, new = edits[fmt]
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(SceneError, match=message) as err:
+        load_opencv({"root": str(tmp_path), "frame": FRAME})
+    assert str(err.value).startswith(f"{path}: ") and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("fmt", ["yaml", "xml"])
+@pytest.mark.parametrize("twentieths", range(1, 20))
+def test_a_cut_short_filestorage_file_is_named_never_an_opencv_error(tmp_path, fmt, twentieths):
+    """Cut anywhere: a one-line SceneError naming the file (a YAML file cut exactly between
+    two cameras is a shorter valid file: it loads with fewer cameras or fails on what is missing)."""
+    write_frames(tmp_path, random_images(len(NAMES)))
+    path = tmp_path / f"calibration.{fmt}"
+    write_filestorage(path, camera_entries(), BOX)
+    text = path.read_text()
+    path.write_text(text[: len(text) * twentieths // 20])
+    with pytest.raises(SceneError) as err:
+        load_opencv({"root": str(tmp_path), "frame": FRAME})
+    message = str(err.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message
+    assert "please report" not in message and "OpenCV(" not in message
+
+
+@pytest.mark.parametrize("fmt, holdout, config", [
+    ("json", "cam01", None),  # one string in a JSON calibration
+    ("xml", ["cam01"], None),  # a sequence of one name, as cv2.FileStorage writes it in XML
+    ("yaml", ["cam01"], None),
+    ("xml", ["cam01", "cam02"], None),
+    ("json", ["cam03"], "cam02"),  # one string in the config wins over the file
+])
+def test_a_holdout_of_one_name_is_one_view(tmp_path, fmt, holdout, config):
+    write_frames(tmp_path, random_images(len(NAMES)))
+    path = tmp_path / f"calibration.{fmt}"
+    if fmt == "json":
+        write_json(path, camera_entries(), BOX, holdout=holdout)
+    else:
+        write_filestorage(path, camera_entries(), BOX, holdout=holdout)
+    scene = load_opencv({"root": str(tmp_path), "frame": FRAME, "holdout": config})
+    expected = [config] if config else ([holdout] if isinstance(holdout, str) else holdout)
+    assert scene.default_holdout == expected

@@ -144,7 +144,7 @@ BAD_INFO = [
     ),
     (
         lambda i: _set(i, "camera_angle_x", -0.4),
-        r"train_videos\[1\]\.camera_angle_x: got -0\.4; it must be > 0 and < 3\.14159",
+        r"train_videos\[1\]\.camera_angle_x: got -0\.4; it must be a number > 0 and < 3\.14159",
     ),
     (
         lambda i: _set(i, "transform_matrix", [[1, 0, 0], [0, 1, 0]]),
@@ -250,3 +250,65 @@ def test_real_box_and_silhouettes_agree(frame):
         assert bool(masks[b, vh, uh]), f"hull centre outside silhouette {scene.views[b]}"
     for a, b_, lo, hi in zip(hull_lo, hull_hi, scene.bbox_min, scene.bbox_max):
         assert lo - 0.05 < a < b_ < hi + 0.05
+
+
+def _matrix_item(row, col, value):
+    return lambda i: i["train_videos"][1]["transform_matrix"][row].__setitem__(col, value)
+
+
+#: a damaged value of info.json -> the message naming file and field
+DAMAGED_VALUES = {
+    "a string in camera_hw": (lambda i: _set(i, "camera_hw", ["32", 40]),
+                              r"train_videos\[1\]\.camera_hw \(item 0\): got the string '32'; write a number"),
+    "a non-integer image height": (lambda i: _set(i, "camera_hw", [32.5, 40]),
+                                   (r"train_videos\[1\]\.camera_hw: got \[32\.5, 40\.0\]; it must be \[H, W\] of "
+                                   r"integers >= 1")),
+    "a zero image height": (lambda i: _set(i, "camera_hw", [0, 40]),
+                            r"train_videos\[1\]\.camera_hw: got \[0\.0, 40\.0\]; it must be \[H, W\] of integers"),
+    "camera_hw as one string": (lambda i: _set(i, "camera_hw", "32x40"),
+                                r"train_videos\[1\]\.camera_hw: got '32x40'; it must be a number"),
+    "camera_hw of three": (lambda i: _set(i, "camera_hw", [32, 40, 3]),
+                           r"train_videos\[1\]\.camera_hw: expected shape \(2,\), got \(3,\)"),
+    "the field of view as a string": (lambda i: _set(i, "camera_angle_x", "0.8"),
+                                      r"train_videos\[1\]\.camera_angle_x: got the string '0\.8'; write a number"),
+    "a field of view past pi": (lambda i: _set(i, "camera_angle_x", 4.0),
+                                r"train_videos\[1\]\.camera_angle_x: got 4\.0; it must be a number > 0 and < 3\.14159"),
+    "a null field of view": (lambda i: _set(i, "camera_angle_x", None),
+                             r"train_videos\[1\]\.camera_angle_x: missing; it must be a number > 0 and < 3\.14159"),
+    "frame_num as a string": (lambda i: _set(i, "frame_num", "9"),
+                              r"train_videos\[1\]\.frame_num: got the string '9'; write a number"),
+    "a non-integer frame_num": (lambda i: _set(i, "frame_num", 8.5),
+                                r"train_videos\[1\]\.frame_num: got 8\.5; it must be an integer >= 1"),
+    "an empty list as file name": (lambda i: _set(i, "file_name", []),
+                                   r"train_videos\[1\]\.file_name: got \[\]; it must be a non-empty string"),
+    "a string in the voxel scale": (lambda i: i.__setitem__("voxel_scale", ["1", 1, 1]),
+                                    r"info\.json: voxel_scale \(item 0\): got the string '1'"),
+    "a string in the voxel matrix": (lambda i: i["voxel_matrix"][0].__setitem__(3, "0.5"),
+                                     r"info\.json: voxel_matrix \(item 3\): got the string '0\.5'"),
+    "near as a string": (lambda i: i.__setitem__("near", "2.0"), r"info\.json: near: got the string '2\.0'"),
+    "a bool in a transform": (_matrix_item(0, 0, True),
+                              r"train_videos\[1\]\.transform_matrix \(item 0\): got True; it must be a number"),
+    "a transform of rows": (lambda i: _set(i, "transform_matrix", "identity"),
+                            r"train_videos\[1\]\.transform_matrix: got 'identity'; it must be a number"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED_VALUES))
+def test_a_damaged_value_names_file_and_field(tmp_path, case):
+    change, message = DAMAGED_VALUES[case]
+    write_capture(tmp_path, random_images(len(NAMES)))
+    _edit(tmp_path, change)
+    with pytest.raises(SceneError, match=message) as err:
+        load_pinf({"root": str(tmp_path), "frame": FRAME})
+    assert str(err.value).startswith(f"{tmp_path / 'info.json'}: ") and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("frame", 7.5, r"config: scene\.frame: got 7\.5; it must be an integer >= 0"),
+    ("frame", "7", r"config: scene\.frame: got the string '7'"),
+    ("downscale", True, r"config: scene\.downscale: got True; it must be an integer >= 1"),
+])
+def test_a_bad_config_value_names_its_field(tmp_path, key, value, message):
+    write_capture(tmp_path, random_images(len(NAMES)))
+    with pytest.raises(SceneError, match=message):
+        load_pinf({"root": str(tmp_path), "frame": FRAME, key: value})

@@ -84,6 +84,8 @@ def _from_file_node(node: cv2.FileNode, file, field: str = ""):
     if node.isSeq():
         return [_from_file_node(node.at(i), file, f"{field}[{i}]") for i in range(node.size())]
     if node.isString():
+        if node.string() == "...":  # what OpenCV's YAML reader gives where the file ends early
+            raise SceneError(f"{file}: {field}: the file ends before this value; is it cut short?")
         return node.string()
     if node.isInt():
         return int(node.real())
@@ -148,8 +150,10 @@ def _read_file_storage(path: Path) -> dict:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as err:  # OpenCV's parse errors surface as either
-        cause = str(err.__cause__ or err).strip().splitlines()[-1][:120]
-        raise SceneError(f"{path}: cv2.FileStorage cannot parse it, is it cut short or malformed? ({cause})") from None
+        text = " ".join(str(err.__cause__ or err).split())
+        where = re.search(r"\((\d+)\): (.*?)'?$", text)
+        cause = f"line {where[1]}: {where[2]}" if where else text[-120:]
+        raise SceneError(f"{path}: cv2.FileStorage cannot parse it ({cause}); is it cut short or malformed?") from None
     try:
         if not fs.isOpened():
             raise SceneError(f"{path}: cv2.FileStorage cannot open it")

@@ -30,10 +30,11 @@ FIELD_OF_VIEW = number(0, math.pi, lo_open=True, hi_open=True)  # radians
 
 def refuse(value, file, field: str, want: str) -> SceneError:
     """The error for ``value`` at ``file: field`` that must be ``want``."""
-    if value is None:
-        return SceneError(f"{file}: {field}: missing; it must be {want}")
     if quoted_number(value):
         return SceneError(f"{file}: {field}: got the string '{value}'; write a number ({want}) without quotes")
+    want = f"a number {want}" if want[:1] in "<>" else want  # a bound alone: "> 0"
+    if value is None:
+        return SceneError(f"{file}: {field}: missing; it must be {want}")
     text = repr(value.tolist() if isinstance(value, np.ndarray) else value)
     text = text if len(text) <= 60 else text[:57] + "..."
     return SceneError(f"{file}: {field}: got {text}; it must be {want}")
@@ -84,7 +85,7 @@ def read_array(value, file, field: str) -> np.ndarray:
     flat = value.reshape(-1).tolist() if isinstance(value, np.ndarray) else list(_leaves(value))
     for i, item in enumerate(flat):
         if isinstance(item, str) or not (isinstance(item, numbers.Real) and not isinstance(item, bool)):
-            where = field if np.ndim(value) == 0 else f"{field} (item {i})"
+            where = f"{field} (item {i})" if isinstance(value, (list, tuple, np.ndarray)) else field
             raise refuse(item, file, where, "a number")
     try:
         arr = np.asarray(value, dtype=np.float64)
