@@ -98,11 +98,11 @@ def tensor(name: str, given, dims: str, ndim: int | None = None, shape: tuple | 
 
 def one_or_many(given):
     """A list of names (or indices) as a list: one name (a string, an int) is a list of one,
-    not of its characters; a tuple becomes a list; anything else is returned as it is (for the
+    not of its characters; a tuple (any sequence) becomes a list; anything else is returned as it is (for the
     check that refuses it)."""
     if isinstance(given, (str, numbers.Integral)) and not isinstance(given, bool):
         return [given]
-    return list(given) if isinstance(given, (list, tuple)) else given
+    return list(given) if isinstance(given, collections.abc.Sequence) else given
 
 
 def fields(obj) -> None:

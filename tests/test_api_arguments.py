@@ -284,6 +284,16 @@ def test_float64_and_numpy_arguments_are_converted(w):
     assert replace(w.scene, images=w.scene.images.double()).images.dtype == torch.float32
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="torch sees no CUDA device")
+def test_cuda_tensors_are_taken_and_moved_where_they_are_needed(w):
+    images = fr.render(w.rec.density.cuda().double(), w.rec.grid, w.scene.cameras)
+    assert images.device.type == "cuda"
+    torch.testing.assert_close(images.cpu(), fr.render(w.rec.density, w.rec.grid, w.scene.cameras),
+                               rtol=1e-4, atol=1e-6)
+    found = fr.fit(w.setup, w.options, torch.zeros(w.M, w.C, device="cuda"))
+    assert found.result.x.device == w.setup.pixels.device
+
+
 def test_one_holdout_name_is_one_view_not_its_letters(w):
     assert fr.ReconstructionOptions(holdout="cam01").holdout == ("cam01",)
     setup = fr.build(w.scene, w.options.replace(holdout="cam01"))

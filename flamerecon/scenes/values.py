@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -73,7 +74,7 @@ def read_names(value, file, field: str) -> list[str]:
     if value is None:
         return []
     items = [value] if isinstance(value, (str, numbers.Integral)) and not isinstance(value, bool) else value
-    if not isinstance(items, (list, tuple)):
+    if not _is_list(items):
         raise refuse(value, file, field, "a list of names")
     return [read_text(item, file, f"{field}[{i}]") for i, item in enumerate(items)]
 
@@ -85,10 +86,10 @@ def read_array(value, file, field: str) -> np.ndarray:
     flat = value.reshape(-1).tolist() if isinstance(value, np.ndarray) else list(_leaves(value))
     for i, item in enumerate(flat):
         if isinstance(item, str) or not (isinstance(item, numbers.Real) and not isinstance(item, bool)):
-            where = f"{field} (item {i})" if isinstance(value, (list, tuple, np.ndarray)) else field
+            where = f"{field} (item {i})" if _is_list(value) or isinstance(value, np.ndarray) else field
             raise refuse(item, file, where, "a number")
     try:
-        arr = np.asarray(value, dtype=np.float64)
+        arr = np.asarray(_as_lists(value), dtype=np.float64)
     except ValueError:  # rows of different lengths
         raise refuse(value, file, field, "an array of numbers with rows of one length") from None
     if not np.isfinite(arr).all():
@@ -115,9 +116,19 @@ def read_size(value, file, field: str, what: str) -> tuple[int, ...]:
     return tuple(int(n) for n in sizes)
 
 
+def _is_list(value) -> bool:
+    """A list, a tuple or a config's list (any sequence but a string)."""
+    return isinstance(value, Sequence) and not isinstance(value, (str, bytes))
+
+
 def _leaves(value):
-    if isinstance(value, (list, tuple)):
+    if _is_list(value):
         for item in value:
             yield from _leaves(item)
     else:
         yield value
+
+
+def _as_lists(value):
+    """Nested sequences (a config's lists too) as nested lists, for numpy."""
+    return [_as_lists(v) for v in value] if _is_list(value) else value
