@@ -14,6 +14,11 @@ Step by step: ``setup = fr.build(scene, options)`` (silhouettes, hull, rays, ope
 ``fr.fit(setup, options)``; ``fr.render(density, grid, cameras)``; ``fr.load_run(folder)``
 reads a CLI run folder back; ``fr.reconstruct_frames(scenes, options, fr.JointFramesOptions())``
 solves consecutive frames jointly. Names are imported on first use.
+
+Every public function and class checks its arguments before any work: a wrong type raises
+:class:`~flamerecon.errors.ArgumentTypeError` (a ``TypeError``), a wrong shape or a value out
+of range :class:`~flamerecon.errors.ArgumentError` (a ``ValueError``), one line naming the
+argument, what it got and what it wants; the options follow the command line's rules.
 """
 
 from __future__ import annotations
