@@ -187,6 +187,8 @@ RULES: dict[str, Rule] = {
     "calibration.resolution": Rule(integer(1), null=True),
     "calibration.frames": Rule(list_of(integer(0), what="a list of frame indices >= 0")),
     "calibration.seed": Rule(integer(0)),
+    "calibration.folder": Rule(text, null=True),
+    "calibration.file": Rule(text, null=True),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),

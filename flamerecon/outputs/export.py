@@ -24,8 +24,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from flamerecon.outputs.atomic import atomic_path, save_npz_atomic, write_json_atomic
 from flamerecon.errors import ConfigError, FlameReconError
+from flamerecon.outputs.atomic import atomic_path, save_npz_atomic, write_json_atomic
 
 DENSITY_FILE = "density.npz"
 FORMATS = ("vti", "nrrd", "raw")
