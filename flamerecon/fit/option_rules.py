@@ -252,8 +252,9 @@ RULES: dict[str, Rule] = {
     "scene.noise": Rule(number(0)),
     "scene.peak": Rule(number(0, lo_open=True)),
     # export/*.yaml
-    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "all"),
-                                   what="a list of vti, nrrd, raw, all")),
+    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "ply", "obj", "mesh", "all"),
+                                   what="a list of vti, nrrd, raw, ply, obj, mesh, all")),
+    "export.iso": Rule(number(0, 1, lo_open=True, hi_open=True)),
 }
 
 
