@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -23,7 +24,10 @@ from flamerecon.fit.refine_cameras import (
 from flamerecon.geometry.cameras import K_of, camera_subset, make_cameras
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.cameras_file import camera_records
-from flamerecon.run.summary import calibration_source
+from flamerecon.outputs.export import load_density
+from flamerecon.run.pipeline import reconstruct as reconstruct_run
+from flamerecon.run.summary import calibration_source, summary_table
+from tests.helpers import tiny_cfg
 
 CPU = torch.device("cpu")
 
@@ -110,3 +114,20 @@ def test_the_summary_says_whether_the_cameras_were_fitted_now_or_read():
     assert calibration_source({"source": "fitted", "file": "/c/x.json"}) == "fitted now, kept in /c/x.json"
     assert "this frame" in calibration_source({"source": "fitted", "file": None})
     assert calibration_source({"source": "read", "file": "/c/x.json"}) == "read from /c/x.json"
+
+
+def test_a_runs_cameras_json_given_as_calibration_file_is_read_and_said_so(tmp_path):
+    """calibration.file on the command line: a second run takes the first run's refined
+    training cameras without a fit, and its metrics.json and summary say where they came from."""
+    first = reconstruct_run(tiny_cfg("calibration.refine=pose", "calibration.rounds=1", "calibration.iterations=1"),
+                            tmp_path / "first")
+    assert (first["calibration"]["source"], first["calibration"]["file"]) == ("fitted", None)
+    given = tmp_path / "first" / "cameras.json"
+    second = reconstruct_run(tiny_cfg(f"calibration.file={given}"), tmp_path / "second")
+    assert (second["calibration"]["source"], second["calibration"]["file"]) == ("read", str(given))
+    assert f"read from {given}" in summary_table(second)
+    cams = [json.loads((tmp_path / run / "cameras.json").read_text())["cameras"] for run in ("first", "second")]
+    assert [(c["K"], c["world_to_camera"], c["split"]) for c in cams[0]] == [
+        (c["K"], c["world_to_camera"], c["split"]) for c in cams[1]]
+    densities = [load_density(tmp_path / run).density for run in ("first", "second")]
+    np.testing.assert_array_equal(*densities)  # the same cameras solve to the same density
