@@ -4,11 +4,13 @@ The Python API (what ``python train.py`` does, without Hydra or a run folder)::
 
     import flamerecon as fr
 
-    scene = fr.load_scene("synthetic")                   # or {"name": "scalarflow", "root": ...}
-    options = fr.ReconstructionOptions()                  # conf/train.yaml's defaults, typed
+    scene = fr.load_scene("synthetic")                   # or "scalarflow", as scene=scalarflow loads it
+    options = fr.preset("synthetic")                      # the CLI's options for that scene, typed
     rec = fr.reconstruct(scene, options)                  # hull, operator, solve, refits, debias
     rec.density                                           # (C, nz, ny, nx) on rec.grid
     fr.score(rec)["heldout"]                              # PSNR / SSIM per held-out view
+    fr.render(rec.density, rec.grid, fr.look_at_camera((0, 1, 3), (0, 0.5, 0)))  # a novel view
+    fr.export(rec, "out/flame", ["vti", "mesh"])          # ParaView volume, PLY + OBJ surface
 
 Step by step: ``setup = fr.build(scene, options)`` (silhouettes, hull, rays, operator),
 ``fr.fit(setup, options)``; ``fr.render(density, grid, cameras)``; ``fr.load_run(folder)``
@@ -47,7 +49,8 @@ API = {
     "Setup": "fit.build", "build": "fit.build", "make_problem": "fit.build",
     "Reconstruction": "fit.reconstruct", "Fit": "fit.reconstruct", "SolveHook": "fit.reconstruct",
     "Stage": "fit.reconstruct", "fit": "fit", "reconstruct": "fit.reconstruct",
-    "load_scene": "api", "render": "api", "score": "api", "make_solver": "api",
+    "load_scene": "api", "render": "api", "score": "api", "make_solver": "api", "preset": "api",
+    "export": "api", "look_at_camera": "geometry.cameras", "orbit_cameras": "outputs.figures",
     "Run": "run.folder", "load_run": "run.folder",
     "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
     "reconstruct_frames": "fit.joint_frames",
@@ -60,8 +63,8 @@ __all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOpt
            "JointReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
            "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
            "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions", "Stage",
-           "VoxelGrid", "build", "fit", "load_run", "load_scene", "make_problem", "make_solver",
-           "reconstruct", "reconstruct_frames", "render", "score"]
+           "VoxelGrid", "build", "export", "fit", "load_run", "load_scene", "look_at_camera", "make_problem",
+           "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames", "render", "score"]
 
 
 def __getattr__(name: str):

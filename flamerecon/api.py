@@ -1,23 +1,30 @@
-"""The Python API's own pieces: scenes by name, rendering, scoring and solvers in one call
-each. The rest of the API (options, build, fit, reconstruct, load_run) is re-exported from
-:mod:`flamerecon` where it lives. Every argument is checked here, by the CLI's rules where it
-has one (:mod:`flamerecon.fit.option_rules`), before any work."""
+"""The Python API's own pieces: presets and scenes by name as the command line has them,
+rendering, scoring, solvers and exports in one call each. The rest of the API (options, build,
+fit, reconstruct, load_run, cameras) is re-exported from :mod:`flamerecon` where it lives.
+Every argument is checked here, by the CLI's rules where it has one
+(:mod:`flamerecon.fit.option_rules`), before any work."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
 
+import numpy as np
 import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_value
 from flamerecon.errors import ArgumentError
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
-from flamerecon.fit.options import SolverOptions
+from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import render_image
+from flamerecon.outputs.export import Density, export_density, load_density
+from flamerecon.outputs.mesh import DEFAULT_ISO
+from flamerecon.resources import config_dir
 from flamerecon.run.folder import Run
 from flamerecon.scenes import SCENE_KEYS, SCENE_LOADERS, Scene, register_built_in
 from flamerecon.scenes import load_scene as load_scene_node
@@ -25,14 +32,33 @@ from flamerecon.solvers import Solver
 from flamerecon.solvers import make_solver as make_solver_unchecked
 
 
-def load_scene(scene: str | Mapping, **options) -> Scene:
-    """A scene by loader name (``"synthetic"``, ``"scalarflow"``, ``"opencv"``, ``"nerf"``,
-    ``"pinf"``) or by its options mapping (``{"name": ..., ...}`` as ``conf/scene/*.yaml``
-    has them), with ``options`` on top, e.g. ``load_scene("synthetic", width=64, height=48)``.
+def preset(scene: str = "synthetic", *overrides: str) -> ReconstructionOptions:
+    """The options ``python train.py scene=<scene> <overrides...>`` reconstructs with, composed
+    from the same ``conf/`` files by Hydra: ``preset("scalarflow")``, ``preset("synthetic",
+    "solver=fista", "grid.resolution=48")``. Scenes: ``conf/scene/*.yaml``."""
+    instance("preset.scene", scene, str, "a scene name of conf/scene/*.yaml")
+    for k, o in enumerate(overrides):
+        instance(f"preset.overrides[{k}]", o, str, "a command-line override key=value")
+    from flamerecon.run.preset import preset as composed
+
+    return composed(scene, *overrides)
+
+
+def load_scene(scene: str | Mapping = "synthetic", **options) -> Scene:
+    """A scene as the command line loads it: by preset name (``"synthetic"``, ``"scalarflow"``:
+    the ``scene:`` node of ``conf/scene/<name>.yaml``, e.g. ScalarFlow frame 59 at 1/4
+    resolution from ``$FLAMERECON_DATA`` or ``../shared/data/scalarflow_real``), by loader name
+    (``"pinf"``), or by its options mapping (``{"name": ..., ...}``); ``options`` on top, e.g.
+    ``load_scene("scalarflow", frame=25)`` or ``load_scene("opencv", root="capture/")``.
     An option the loader does not read, or a value its ``scene.*`` rule refuses, is an
     :class:`~flamerecon.errors.ArgumentError` naming it."""
     instance("load_scene.scene", scene, (str, Mapping), "a scene name or a mapping of scene options")
-    node = {**({"name": scene} if isinstance(scene, str) else dict(scene)), **options}
+    node = {"name": scene} if isinstance(scene, str) else dict(scene)
+    if isinstance(scene, str) and (config_dir() / "scene" / f"{scene}.yaml").is_file():
+        from flamerecon.run.preset import scene_preset  # Hydra composes it, as for the command line
+
+        node = scene_preset(scene)
+    node = {**node, **options}
     name = node.get("name")
     register_built_in()
     if name not in SCENE_LOADERS:
@@ -50,7 +76,8 @@ def load_scene(scene: str | Mapping, **options) -> Scene:
 
 def render(volume: torch.Tensor, grid: VoxelGrid, cameras: PinholeCamera, step: float = 0.5) -> torch.Tensor:
     """Emission-only renders of a density (C, nz, ny, nx) on ``grid`` through kornia
-    ``cameras`` (B of them, one size): (B, C, H, W) float32 line integrals on the density's
+    ``cameras`` (B of them, one size; :func:`flamerecon.look_at_camera`,
+    :func:`flamerecon.orbit_cameras` or a scene's): (B, C, H, W) float32 line integrals on the density's
     device, ``step`` in voxels (>= 0.01, as ``projector.step``)."""
     instance("render.grid", grid, VoxelGrid)
     volume = tensor("render.volume", volume, "(C, nz, ny, nx) on the grid", shape=(None, *grid.shape), finite=True)
@@ -77,3 +104,24 @@ def make_solver(name: str, **options) -> Solver:
     each checked by its rule ``solver.<option>`` as the CLI checks it."""
     SolverOptions(name, None, None, options)
     return make_solver_unchecked(name, **options)
+
+
+def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti",),
+           iso: float = DEFAULT_ISO) -> list[Path]:
+    """Write the density of ``result`` (a Reconstruction, a loaded Run, or a run folder or
+    density.npz) for other tools as ``<stem>.<format>``: ``vti`` (ParaView), ``nrrd``, ``raw``
+    (+ ``.raw.json``), the iso-surface mesh at ``iso`` times the peak density as ``ply`` and
+    ``obj`` (Blender, ParaView; ``mesh``: both), ``all``; returns the files written."""
+    instance("export.result", result, (Reconstruction, Run, str, os.PathLike),
+             "a Reconstruction, a Run, or a run folder or density.npz")
+    instance("export.stem", stem, (str, os.PathLike), "a path without suffix")
+    value("export.iso", iso, RULES["export.iso"].check)
+    if isinstance(result, (str, os.PathLike)):
+        volume = load_density(result)
+    else:
+        views = getattr(result, "train", None) or result.setup.train
+        grid = result.grid
+        volume = Density(result.density.detach().cpu().numpy().astype(np.float32), np.array(grid.bbox_min),
+                         np.array(grid.bbox_max), [result.scene.views[v] for v in views])
+    Path(stem).parent.mkdir(parents=True, exist_ok=True)
+    return export_density(volume, stem, formats, iso)

@@ -1,15 +1,18 @@
-"""Export a run's density.npz for ParaView (VTK .vti), NRRD readers and simulation codes (raw).
+"""Export a run's density.npz for ParaView (VTK .vti), NRRD readers, simulation codes (raw) and
+as an iso-surface mesh for Blender and ParaView (PLY, OBJ).
 
-    PYTHONPATH=. python scripts/export.py RUN_DIR --format vti|nrrd|raw|all [--format ...]
+    PYTHONPATH=. python scripts/export.py RUN_DIR --format vti --format ply [--iso 0.1]
 
-Writes RUN_DIR/density.vti, density.nrrd, density.raw + density.raw.json.
+Formats: vti, nrrd, raw, ply, obj, mesh (ply and obj), all (every one; the default). Writes
+RUN_DIR/density.vti, density.nrrd, density.raw + density.raw.json, density.ply, density.obj.
 """
 
 from __future__ import annotations
 
 import sys
 
-from flamerecon.outputs.export import FORMATS, export_run
+from flamerecon.outputs.export import ALIASES, FORMATS, export_run
+from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.run.cli import ArgumentParser, run_script
 from flamerecon.run.lock import run_lock
 
@@ -18,14 +21,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", help="run folder holding density.npz")
     parser.add_argument(
-        "--format", dest="formats", action="append", choices=[*FORMATS, "all"],
+        "--format", dest="formats", action="append", choices=[*FORMATS, *ALIASES],
         help="export format; repeat for several (default: all)",
     )
+    parser.add_argument("--iso", type=float, default=DEFAULT_ISO,
+                        help=f"mesh level, a fraction of the peak density in (0, 1) (default: {DEFAULT_ISO})")
     args = parser.parse_args(argv)
 
     def export() -> None:
         with run_lock(args.run_dir):
-            written = export_run(args.run_dir, args.formats or ["all"])
+            written = export_run(args.run_dir, args.formats or ["all"], args.iso)
         for path in written:
             print(path)
 

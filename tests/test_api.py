@@ -75,8 +75,11 @@ def test_load_run_rescores_a_cli_run_to_its_metrics(cli_run):
 
 
 def test_the_core_imports_neither_hydra_nor_omegaconf():
+    # a scene by its options mapping: a preset's name (fr.load_scene("synthetic"), fr.preset)
+    # composes conf/ as the command line does, with Hydra, in the run layer
     code = ("import sys, flamerecon as fr; "
-            "s = fr.load_scene('synthetic', width=24, height=18, n_cameras=3, phantom_resolution=16); "
+            "s = fr.load_scene({'name': 'synthetic', 'width': 24, 'height': 18, 'n_cameras': 3, "
+            "'phantom_resolution': 16}); "
             "o = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device='cpu', "
             "solver=fr.SolverOptions(params={'max_iters': 5})); "
             "fr.reconstruct(s, o); "

@@ -216,13 +216,14 @@ def test_raw_read_back_with_numpy_fromfile(tmp_path):
 @needs_vtk
 def test_export_script_writes_all_formats_into_run_dir(tmp_path):
     pytest.importorskip("nrrd")
+    pytest.importorskip("skimage")
     vol = _volume(3)
     save_density(tmp_path / "density.npz", vol, LO, HI, ["a", "b"])
     proc = _run_script("export.py", tmp_path, "--format", "all")
     assert proc.returncode == 0, proc.stderr
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["density.npz", "density.nrrd", "density.raw", "density.raw.json",
-                     "density.vti"]
+    assert names == ["density.npz", "density.nrrd", "density.obj", "density.ply", "density.raw",
+                     "density.raw.json", "density.vti"]
     _, arrays = _read_vti(tmp_path / "density.vti")
     np.testing.assert_array_equal(arrays["G"], vol[1].reshape(-1))
 
@@ -248,6 +249,8 @@ def test_export_config_group_names_known_formats(tmp_path, config):
         pytest.importorskip("vtkmodules")
     if "nrrd" in formats:
         pytest.importorskip("nrrd")
+    if {"ply", "obj"} & set(formats):
+        pytest.importorskip("skimage")
     written = export_run(tmp_path, formats)
     assert {p.suffix for p in written} == {f".{f}" for f in formats} | (
         {".json"} if "raw" in formats else set())

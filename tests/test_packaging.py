@@ -52,11 +52,10 @@ def test_the_wheel_installs_and_its_command_runs_outside_the_checkout(tmp_path):
     expected = {f"flamerecon/conf/{p.relative_to(REPO / 'conf').as_posix()}"
                 for p in (REPO / "conf").rglob("*.yaml")}
     assert shipped == expected
-    env_dir = tmp_path / "venv"  # the dependencies come from this interpreter's site-packages
-    venv.create(env_dir, system_site_packages=True, with_pip=True)
-    bin_dir = env_dir / ("Scripts" if sys.platform == "win32" else "bin")
-    subprocess.run([str(bin_dir / "python"), "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
-                   check=True, capture_output=True, cwd=tmp_path)
+    env_dir = tmp_path / "venv"
+    bin_dir = borrowing_venv(env_dir)
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(bin_dir / "python"), "install", "-q",
+                    "--no-deps", str(wheel)], check=True, capture_output=True, cwd=tmp_path)
     where = subprocess.run(
         [str(bin_dir / "python"), "-c", ("import flamerecon.resources as r; "
                                          "print(r.PACKAGE, r.config_dir(), r.checkout_root())")],
@@ -75,6 +74,20 @@ def test_the_wheel_installs_and_its_command_runs_outside_the_checkout(tmp_path):
                                          "print(fr.score(r)['heldout']['cam04']['psnr'])")],
         check=True, capture_output=True, text=True, cwd=tmp_path, timeout=300).stdout
     assert float(api) == pytest.approx(metrics["heldout"]["cam04"]["psnr"], rel=1e-6)
+
+
+def borrowing_venv(env_dir: Path) -> Path:
+    """A fresh venv at ``env_dir`` that imports its dependencies from the folders the running
+    interpreter imports from (its ``sys.path``, listed in a ``.pth`` file, after the venv's own
+    site-packages), the checkout left out; returns its bin folder. ``system_site_packages``
+    would give the base interpreter's packages instead, which inside a venv lack them."""
+    venv.create(env_dir, with_pip=False)
+    bin_dir = env_dir / ("Scripts" if sys.platform == "win32" else "bin")
+    site = subprocess.run([str(bin_dir / "python"), "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+                          check=True, capture_output=True, text=True).stdout.strip()
+    borrowed = [p for p in sys.path if p and Path(p).is_dir() and Path(p).resolve() != REPO]
+    (Path(site) / "borrowed-from-the-test-interpreter.pth").write_text("\n".join(borrowed) + "\n")
+    return bin_dir
 
 
 def test_a_relative_scene_root_resolves_against_where_the_command_started(tmp_path, monkeypatch):

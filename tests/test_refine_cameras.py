@@ -185,8 +185,9 @@ def test_cameras_fitted_to_several_frames_at_once_recover_as_well_as_to_one():
 
 def test_calibration_frames_fit_the_cameras_once_per_capture_and_read_them_back(tmp_path, monkeypatch):
     """calibration.frames: the training cameras are fitted to those frames (not the one
-    reconstructed), the fit is cached, and another frame of the capture reuses it; held-out
-    cameras keep their calibration, and the record says which frames were fitted."""
+    reconstructed), kept in one cameras.json in the cache folder's calibration/, and another
+    frame of the capture reads it back; held-out cameras keep their calibration, and the record
+    says which frames were fitted and where the cameras came from."""
     import flamerecon as fr
     from flamerecon.fit import capture_calibration
     from flamerecon.fit.reconstruct import calibrated_scene
@@ -201,8 +202,11 @@ def test_calibration_frames_fit_the_cameras_once_per_capture_and_read_them_back(
     first = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32, frame=0)
     other = fr.load_scene({**first.meta["config"], "frame": 9})
     refined, record = calibrated_scene(first, options, torch.device("cpu"))
-    again, _ = calibrated_scene(other, options, torch.device("cpu"))
-    assert len(fits) == 1 and len(list(tmp_path.glob("calibration-*.pt"))) == 1
+    again, again_record = calibrated_scene(other, options, torch.device("cpu"))
+    (kept,) = (tmp_path / "calibration").rglob("*.json")
+    assert len(fits) == 1 and kept.parent.name == "synthetic"
+    assert (record["source"], record["file"], again_record["source"]) == ("fitted", str(kept), "read")
+    assert again_record["file"] == str(kept)
     assert record["frames"] == [3, 6] and math.isfinite(record["train_psnr_before"])
     train, holdout = first.split(None)
     assert torch.equal(refined.cameras.extrinsics, again.cameras.extrinsics)

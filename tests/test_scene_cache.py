@@ -104,3 +104,26 @@ def test_old_entries_beyond_the_limit_go_first(folder, monkeypatch):
     names = {p.name for p in folder.glob("toy-*.pt")}
     assert len(names) == 2
     assert f"toy-{cache.entry_key('toy', {'n': 0}, CODE)[:32]}.pt" not in names
+
+
+def test_large_entries_of_one_kind_never_evict_small_entries_of_another(folder, monkeypatch):
+    """Each kind keeps its own budget: many large entries of one kind evict only their own
+    oldest, by count and by bytes, and another kind's small entry stays."""
+    monkeypatch.setattr(cache, "MAX_ENTRIES", 3)
+    monkeypatch.setattr(cache, "MAX_BYTES", 250_000)  # two of the 100 kB entries below, not three
+    small, _ = counted()
+    cache.cached("small", {"n": 0}, small, CODE)
+    for n in range(6):
+        cache.cached("large", {"n": n}, lambda: {"x": torch.zeros(25_000)}, CODE)
+        os.utime(folder / f"large-{cache.entry_key('large', {'n': n}, CODE)[:32]}.pt", (1e6 + n, 1e6 + n))
+    assert len(list(folder.glob("small-*.pt"))) == 1
+    kept = {p.name for p in folder.glob("large-*.pt")}
+    assert kept == {f"large-{cache.entry_key('large', {'n': n}, CODE)[:32]}.pt" for n in (4, 5)}
+
+
+def test_the_newest_entry_stays_even_beyond_the_byte_budget(folder, monkeypatch):
+    monkeypatch.setattr(cache, "MAX_BYTES", 10)
+    compute, calls = counted()
+    cache.cached("toy", {"n": 1}, compute, CODE)
+    cache.cached("toy", {"n": 1}, compute, CODE)
+    assert len(calls) == 1

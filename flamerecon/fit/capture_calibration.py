@@ -1,71 +1,150 @@
-"""The cameras of a capture refined once over several of its frames (``calibration.frames``).
+"""The cameras of a capture refined once over several of its frames (``calibration.frames``),
+kept as a cameras.json file.
 
 The cameras stand still while the flame moves, so their corrections are a property of the
 capture, not of a frame: :func:`capture_refinement` fits them to the training views of the
-frames listed (:func:`flamerecon.fit.refine_cameras.refine` with one density per frame) and keeps
-the result in the disk cache (:mod:`flamerecon.scenes.cache`), so every frame of a sequence
-reuses one fit. The entry is named by the frames' training images, the calibration, the
-training views, the options and the code that fits them: any change fits again.
+frames listed (:func:`flamerecon.fit.refine_cameras.refine` with one density per frame) and
+writes them once (:mod:`flamerecon.outputs.cameras_file`) to
+``<calibration.folder>/<capture>/cameras-<key>.json``; every later run, script and API call with
+the same key reads that file instead of fitting. The default folder is ``calibration/`` in the
+cache folder (:func:`flamerecon.scenes.cache.cache_home`): per user and writable, where a data
+folder is often read-only or shared, and never in the checkout; unlike a cache entry nothing
+evicts it. The key hashes what determines the cameras: the frames' training images, the
+capture's calibration, the training views, the grid of the fit, the options of the fit and of
+its density solves, the device type and the code that fits them; any change fits again, into
+a file of its own.
 """
 
 from __future__ import annotations
 
 import importlib
+import logging
 import pkgutil
+import re
+import sys
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon import solvers
-from flamerecon.fit import build, debias, refine_cameras
+from flamerecon.errors import ConfigError
+from flamerecon.fit import build, debias, refine_cameras, weight_selection
 from flamerecon.fit.options import ReconstructionOptions
-from flamerecon.fit.refine_cameras import CalibrationFrame, Refinement, refine
-from flamerecon.geometry.cameras import cameras_to
+from flamerecon.fit.refine_cameras import CalibrationFrame, refine, with_cameras
+from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators import projector
+from flamerecon.outputs import cameras_file
+from flamerecon.outputs.atomic import make_folder, write_json_atomic
+from flamerecon.outputs.cameras_file import camera_records, cameras_from_records, read_camera_file
 from flamerecon.scenes import Scene, load_frame
-from flamerecon.scenes.cache import cached, digest
+from flamerecon.scenes.cache import cache_home, digest, entry_key
 
-#: history keys of a refinement round, in the order the cache stores them
-ROUND_KEYS = ("rms_before", "rms_after", "iterations", "rays")
+log = logging.getLogger(__name__)
+
+#: options that do not change the cameras fitted: views held out (the training views are keyed),
+#: warm start, threads, the device (its type is keyed) and the run's grid (the fit's is keyed)
+UNKEYED = ("holdout", "init", "threads", "device", "grid")
+
+
+@dataclass
+class CaptureCalibration:
+    """The training cameras of a capture: ``cameras`` (B: every camera of the scene, the
+    held-out ones the scene's own), the fit's rounds (``history``, as
+    :class:`~flamerecon.fit.refine_cameras.Refinement` has them) and ``source``: ``fitted``
+    (now, and written to ``file``) or ``read`` (from ``file``)."""
+
+    cameras: PinholeCamera
+    history: list[dict]
+    source: str
+    file: Path | None
 
 
 def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
-                       device: torch.device, frame_of: Callable[[Scene], CalibrationFrame]) -> Refinement:
+                       device: torch.device, frame_of: Callable[[Scene], CalibrationFrame]) -> CaptureCalibration:
     """The training cameras ``train`` of ``scene`` refined over the frames
     ``options.calibration.frames`` of its capture (each loaded as :func:`load_frame` does and
-    turned into a :class:`CalibrationFrame` by ``frame_of``), from the cache when it holds
-    them. ``initial_volume`` is None: no frame of the fit need be the one reconstructed."""
+    turned into a :class:`CalibrationFrame` by ``frame_of``), read from the capture's
+    calibration file when it exists, else fitted and written there."""
     frames = [load_frame(scene, t) for t in options.calibration.frames]  # refuses a scene without config
     images = {f"frame{t}": f.images[train] for t, f in zip(options.calibration.frames, frames)}
-    key = {
-        "capture": {k: v for k, v in scene.meta["config"].items() if k != "frame"},
+    key = entry_key("calibration", calibration_key(scene, train, grid, options, device, images),
+                    [*fitting_code(), sys.modules[frame_of.__module__]])
+    folder = Path(options.calibration.folder) if options.calibration.folder else cache_home() / "calibration"
+    path = folder / capture_name(scene) / f"cameras-{key[:16]}.json"
+    history = read_calibration(path, key)
+    if history is not None:
+        return CaptureCalibration(file_cameras(path, scene, train), history, "read", path)
+    found = refine(cameras_to(scene.cameras, device), train, [frame_of(f) for f in frames], grid,
+                   options.calibration, float(options.projector.step))
+    records = camera_records(scene.views, cameras_to(found.cameras, "cpu"), train, calibrated=scene.cameras)
+    record = {"key": key, "frames": list(options.calibration.frames), "refine": options.calibration.refine,
+              "history": found.history}
+    try:
+        make_folder(path.parent)
+        write_json_atomic(path, {"cameras": records, "calibration": record})
+    except OSError as err:
+        log.warning("could not write the capture's calibration %s (%s): the next run fits it again; set "
+                    "calibration.folder to a writable folder", path, err)
+    cameras = cameras_from_records(records, scene.views, scene.cameras.height, scene.cameras.width)
+    return CaptureCalibration(with_cameras(scene.cameras, train, camera_subset(cameras, train)), found.history,
+                              "fitted", path)
+
+
+def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
+                    device: torch.device, images: dict[str, torch.Tensor]) -> dict:
+    """What the cameras fitted by :func:`capture_refinement` depend on, JSON-able."""
+    fit_options = {k: v for k, v in options.as_dict().items() if k not in UNKEYED}
+    fit_options["calibration"] = {k: v for k, v in fit_options["calibration"].items()
+                                 if k not in ("folder", "file", "resolution")}  # the grid is keyed
+    return {
         "views": [scene.views[v] for v in train],
         "images": digest(images),
         "cameras": digest({"K": scene.cameras.intrinsics, "E": scene.cameras.extrinsics}),
-        "options": {k: v for k, v in asdict(options).items() if k not in ("holdout", "threads", "init")},
+        "grid": {"lo": list(grid.bbox_min), "hi": list(grid.bbox_max), "resolution": list(grid.resolution)},
+        "options": fit_options,
         "device": torch.device(device).type,
-        "step": float(options.projector.step),
     }
 
-    def compute() -> dict[str, torch.Tensor]:
-        found = refine(cameras_to(scene.cameras, device), train, [frame_of(f) for f in frames], grid,
-                       options.calibration, float(options.projector.step))
-        history = torch.tensor([[float(r[k]) for k in ROUND_KEYS] for r in found.history], dtype=torch.float64)
-        return {"intrinsics": found.cameras.intrinsics.cpu(), "extrinsics": found.cameras.extrinsics.cpu(),
-                "corrections": found.corrections.cpu(), "history": history.reshape(-1, len(ROUND_KEYS))}
 
-    tensors = cached("calibration", key, compute,
-                     [refine_cameras, projector, build, debias, *solver_modules()])
-    cameras = PinholeCamera(tensors["intrinsics"], tensors["extrinsics"], scene.cameras.height.clone(),
-                            scene.cameras.width.clone())
-    history = [{k: (int(v) if k in ("iterations", "rays") else float(v)) for k, v in zip(ROUND_KEYS, row.tolist())}
-               for row in tensors["history"]]
-    return Refinement(cameras, tensors["corrections"], None, history)
+def read_calibration(path: Path, key: str) -> list[dict] | None:
+    """The fit's history from the calibration file ``path`` when it holds the calibration
+    ``key``; None when there is none (or it is unreadable or another's: it is fitted again)."""
+    if not path.is_file():
+        return None
+    try:
+        data = read_camera_file(path)
+        if data["calibration"]["key"] == key:
+            return list(data["calibration"]["history"])
+    except (ConfigError, KeyError, TypeError) as err:
+        log.warning("%s is not a calibration file (%s); fitting the cameras again", path, err)
+        return None
+    log.warning("%s holds another calibration (its key differs); fitting the cameras again", path)
+    return None
 
 
-def solver_modules() -> list:
-    """The modules of :mod:`flamerecon.solvers` (their code shapes every density solve)."""
-    return [importlib.import_module(f"{solvers.__name__}.{m.name}") for m in pkgutil.iter_modules(solvers.__path__)]
+def file_cameras(path: str | Path, scene: Scene, train: list[int]) -> PinholeCamera:
+    """The cameras of ``scene`` with its training cameras ``train`` read from the cameras.json
+    ``path`` (by name; ``calibration.file``) and its held-out cameras its own."""
+    records = read_camera_file(path)["cameras"]
+    read = cameras_from_records(records, scene.views, scene.cameras.height, scene.cameras.width,
+                                f"calibration.file: {path}")
+    return with_cameras(scene.cameras, train, camera_subset(read, train))
+
+
+def capture_name(scene: Scene) -> str:
+    """The folder name of a capture's calibration files: the loader's name and the data
+    folder's (``scalarflow-scalarflow_real``), letters, digits, ``-``, ``_``, ``.`` only."""
+    root = (scene.meta.get("config") or {}).get("root")
+    name = f"{scene.name}-{Path(str(root)).name}" if root else scene.name
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name)
+
+
+def fitting_code() -> list:
+    """The modules whose code shapes the cameras fitted: the fit, the renderer, the density
+    solves (set-up, weights, debiasing, every solver) and the cameras file."""
+    found = [importlib.import_module(f"{solvers.__name__}.{m.name}") for m in pkgutil.iter_modules(solvers.__path__)]
+    return [refine_cameras, projector, build, debias, weight_selection, cameras_file, *found]

@@ -107,6 +107,8 @@ RULES: dict[str, Rule] = {
     "calibration.resolution": Rule(integer(1), null=True),
     "calibration.frames": Rule(list_of(integer(0), what="a list of frame indices >= 0")),
     "calibration.seed": Rule(integer(0)),
+    "calibration.folder": Rule(text, null=True),
+    "calibration.file": Rule(text, null=True),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),
@@ -170,8 +172,9 @@ RULES: dict[str, Rule] = {
     "scene.noise": Rule(number(0)),
     "scene.peak": Rule(number(0, lo_open=True)),
     # export/*.yaml
-    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "all"),
-                                   what="a list of vti, nrrd, raw, all")),
+    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "ply", "obj", "mesh", "all"),
+                                   what="a list of vti, nrrd, raw, ply, obj, mesh, all")),
+    "export.iso": Rule(number(0, 1, lo_open=True, hi_open=True)),
 }
 
 

@@ -11,6 +11,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -32,7 +33,7 @@ from flamerecon.fit.build import (
     scene_masks,
     split_views,
 )
-from flamerecon.fit.capture_calibration import capture_refinement
+from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import level_grids, level_iters
 from flamerecon.fit.options import ReconstructionOptions
@@ -398,14 +399,20 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     refined through the renderer (:func:`~flamerecon.fit.refine_cameras.refine`, each density
     solve as :func:`build` and :func:`fit` do it, on the grid of ``calibration.resolution``
     (default: the final grid's), a ``refit`` debias done by the gain) to this frame, or with
-    ``calibration.frames`` to those frames of the capture (once per capture:
-    :func:`~flamerecon.fit.capture_calibration.capture_refinement`), its held-out cameras
-    unchanged, and the record for metrics.json's ``calibration`` (corrections per camera, the
-    scores of this frame's density solved before refinement). ``(scene, None)`` when off."""
+    ``calibration.frames`` to those frames of the capture (once per capture, kept in a file:
+    :func:`~flamerecon.fit.capture_calibration.capture_refinement`); with ``calibration.file``
+    read from that cameras.json instead. Refinement starts from the capture's own cameras, also
+    for a scene that carries refined ones (a loaded run's: ``meta["calibrated_cameras"]``);
+    held-out cameras keep their own. Returns the scene and the record for metrics.json's
+    ``calibration`` (where the cameras came from, corrections per camera, the scores of this
+    frame's density solved with the capture's own cameras); ``(scene, None)`` when off."""
     refining = options.calibration
-    if refining.refine == "none":
+    if refining.refine == "none" and not refining.file:
         return scene, None
     started = time.perf_counter()
+    if "calibrated_cameras" in scene.meta:
+        scene = replace(scene, cameras=scene.meta["calibrated_cameras"],
+                        meta={k: v for k, v in scene.meta.items() if k != "calibrated_cameras"})
     train, holdout = split_views(scene, options)
     grid = scene_grid(replace(options.grid, resolution=refining.resolution or options.grid.resolution), scene)
     step = float(options.projector.step)
@@ -425,19 +432,23 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         return CalibrationFrame(images, scene_masks(source, images, options), solve_density)
 
     this = frame_of(scene)
-    if refining.frames:
+    if refining.file:
+        found = CaptureCalibration(file_cameras(refining.file, scene, train), [], "read", Path(refining.file))
+    elif refining.frames:
         found = capture_refinement(scene, train, grid, options, device, frame_of)
-        initial = this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
     else:
-        found = refine(cameras_to(scene.cameras, device), train, [this], grid, refining, step)
-        initial = found.initial_volume
+        fitted = refine(cameras_to(scene.cameras, device), train, [this], grid, refining, step)
+        found = CaptureCalibration(fitted.cameras, fitted.history, "fitted", None)
+        initial = fitted.initial_volume
+    if found.file is not None:
+        initial = this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
     refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
                       meta={**scene.meta, "calibrated_cameras": scene.cameras})
     before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
-    report = correction_report(camera_subset(scene.cameras, train), camera_subset(refined.cameras, train),
-                               grid, found.corrections.cpu())
+    report = correction_report(camera_subset(scene.cameras, train), camera_subset(refined.cameras, train), grid)
     record = {
-        "refine": refining.refine, "frames": list(refining.frames), "rounds": found.history,
+        "refine": refining.refine, "frames": list(refining.frames), "source": found.source,
+        "file": None if found.file is None else str(found.file), "rounds": found.history,
         "seconds": time.perf_counter() - started,
         "train_psnr_before": mean_of(before["train"], "psnr"),
         "heldout_psnr_before": mean_of(before["heldout"], "psnr"),

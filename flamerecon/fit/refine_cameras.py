@@ -79,8 +79,13 @@ class RefineOptions:
       absorb the cameras' errors as a fine one does;
     - ``frames``: the frames of the capture whose training views the cameras are fitted to
       (the cameras stand still); empty: the frame reconstructed. Fitted once per capture and
-      options, then read from the cache (:func:`flamerecon.fit.capture_calibration.capture_refinement`);
-    - ``seed``: of the pixel subsets.
+      options, kept as a cameras.json file in ``folder`` and read back from it
+      (:func:`flamerecon.fit.capture_calibration.capture_refinement`);
+    - ``seed``: of the pixel subsets;
+    - ``folder``: where a capture's calibration files are kept (None: ``calibration/`` in the
+      cache folder, :func:`flamerecon.scenes.cache.cache_home`);
+    - ``file``: a cameras.json (a run's, or a capture's calibration file) whose cameras replace
+      the training cameras; no camera fit runs, whatever ``refine`` says.
     """
 
     refine: str = "none"
@@ -96,6 +101,8 @@ class RefineOptions:
     resolution: int | None = None
     frames: tuple[int, ...] = ()
     seed: int = 0
+    folder: str | None = None
+    file: str | None = None
 
     def __post_init__(self) -> None:
         check_section("calibration", self)
@@ -420,21 +427,24 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
     return Refinement(refined, theta.detach(), initial[0], history)
 
 
-def correction_report(cameras: PinholeCamera, refined: PinholeCamera, grid: VoxelGrid,
-                      theta: torch.Tensor) -> list[dict]:
-    """Per camera of ``cameras`` / ``refined`` (same T) with corrections ``theta`` (T, 9):
-    ``rotation_deg``, ``translation`` (camera centre shift, world units), ``focal_scale``,
-    ``principal_point_px`` [du, dv] and ``box_px``, the mean shift of the box corners'
-    projections in pixels."""
+def correction_report(cameras: PinholeCamera, refined: PinholeCamera, grid: VoxelGrid) -> list[dict]:
+    """Per camera of ``cameras`` / ``refined`` (same T), what the refinement changed, read off
+    the cameras themselves (so a calibration read from a file is reported alike):
+    ``rotation_deg`` (angle of the relative rotation), ``translation`` (camera centre shift,
+    world units), ``focal_scale`` (fx after / before), ``principal_point_px`` [du, dv] and
+    ``box_px``, the mean shift of the box corners' projections in pixels."""
     corners = grid.corners().to(cameras.extrinsics.device)
     before, _ = project_points(cameras, corners)
     after, _ = project_points(refined, corners)
     shift = (after - before).norm(dim=-1).mean(-1)
     moved = (camera_centers(refined) - camera_centers(cameras)).norm(dim=-1)
-    theta = theta.detach().double().cpu()
+    M = cameras.extrinsics[:, :3, :3].double().transpose(1, 2) @ refined.extrinsics[:, :3, :3].double()
+    axis = torch.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], -1)
+    angle = torch.atan2(0.5 * axis.norm(dim=-1), 0.5 * (M.diagonal(dim1=1, dim2=2).sum(-1) - 1))
+    K0, K1 = K_of(cameras).double().cpu(), K_of(refined).double().cpu()
     return [
-        {"rotation_deg": math.degrees(float(theta[i, :3].norm())), "translation": float(moved[i]),
-         "focal_scale": math.exp(float(theta[i, 6])), "principal_point_px": theta[i, 7:].tolist(),
+        {"rotation_deg": math.degrees(float(angle[i])), "translation": float(moved[i]),
+         "focal_scale": float(K1[i, 0, 0] / K0[i, 0, 0]), "principal_point_px": (K1[i, :2, 2] - K0[i, :2, 2]).tolist(),
          "box_px": float(shift[i])}
-        for i in range(theta.shape[0])
+        for i in range(cameras.batch_size)
     ]

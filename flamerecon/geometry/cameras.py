@@ -12,6 +12,8 @@ files) shift the principal point by +0.5 when they build ``K``.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from kornia.geometry.camera import PinholeCamera
 
@@ -88,6 +90,18 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> torch.Tensor:
     w2c[:, :3, :3] = R
     w2c[:, :3, 3] = -(R @ eye.unsqueeze(-1)).squeeze(-1)
     return w2c.to(torch.float32)
+
+
+def look_at_camera(eye, target, up=(0.0, 1.0, 0.0), width: int = 320, height: int = 240,
+                   fov_deg: float = 40.0) -> PinholeCamera:
+    """Pinhole cameras at ``eye`` ((3,) or (B, 3), world units) looking at ``target``, with
+    ``up`` the world direction upwards in the image, a ``width`` x ``height`` pixel image,
+    ``fov_deg`` its vertical field of view and the principal point at the image centre: a
+    kornia batch of B cameras (1 for one eye), ready for :func:`flamerecon.render`."""
+    w2c = look_at(eye, target, up)
+    focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2)
+    K = intrinsics_matrix(focal, focal, width / 2, height / 2).expand(w2c.shape[0], 3, 3)
+    return make_cameras(K, w2c, height, width)
 
 
 def camera_centers(cams: PinholeCamera) -> torch.Tensor:

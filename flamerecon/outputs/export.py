@@ -11,7 +11,9 @@ Exports (all written atomically):
 - VTK image data ``.vti`` (ParaView), one point-data array per channel, and a ``.pvd``
   time-series index over several of them; needs the optional ``vtk`` package;
 - NRRD ``.nrrd`` with space origin and directions; needs the optional ``pynrrd`` package;
-- raw little-endian float32 ``.raw`` with a JSON header ``.raw.json`` that says how to read it.
+- raw little-endian float32 ``.raw`` with a JSON header ``.raw.json`` that says how to read it;
+- an iso-surface mesh as ``.ply`` and/or ``.obj`` (:mod:`flamerecon.outputs.mesh`, needs the
+  optional ``scikit-image`` package); ``mesh`` names both, ``all`` every format.
 """
 
 from __future__ import annotations
@@ -24,11 +26,14 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from flamerecon.outputs.atomic import atomic_path, save_npz_atomic, write_json_atomic
 from flamerecon.errors import ConfigError, FlameReconError
+from flamerecon.outputs.atomic import atomic_path, save_npz_atomic, write_json_atomic
+from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface, marching_cubes, write_obj, write_ply
 
 DENSITY_FILE = "density.npz"
-FORMATS = ("vti", "nrrd", "raw")
+FORMATS = ("vti", "nrrd", "raw", "ply", "obj")
+#: names for several formats at once
+ALIASES = {"all": FORMATS, "mesh": ("ply", "obj")}
 _RESERVED = ("density", "bbox_min", "bbox_max", "views")
 _INSTALL_HINT = "install the optional exporters with: pip install 'flamerecon[export]'"
 
@@ -346,9 +351,11 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
 
 
 def export_density(
-    volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS
+    volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO
 ) -> list[Path]:
-    """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd`` and/or ``.raw`` (+ ``.raw.json``)."""
+    """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.ply``
+    and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
+    see :func:`~flamerecon.outputs.mesh.iso_surface`)."""
     formats = _check_formats(formats)
     stem = Path(out_stem)
     args = (volume.density, volume.bbox_min, volume.bbox_max)
@@ -359,13 +366,19 @@ def export_density(
         written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args))
     if "raw" in formats:
         written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, views=volume.views))
+    meshes = [(f, w) for f, w in (("ply", write_ply), ("obj", write_obj)) if f in formats]
+    if meshes:
+        vertices, faces = iso_surface(*args, iso=iso)
+        comment = (f"flamerecon iso-surface at {iso:g} x the peak of the density's channel mean; "
+                   "world units; box {} to {}".format(*(list(map(float, b)) for b in args[1:])))
+        written += [write(stem.with_name(f"{stem.name}.{fmt}"), vertices, faces, comment) for fmt, write in meshes]
     return written
 
 
-def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS) -> list[Path]:
+def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO) -> list[Path]:
     """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``."""
     run_dir = Path(run_dir)
-    return export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats)
+    return export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
 
 
 def check_exporters(formats: Iterable[str]) -> None:
@@ -380,14 +393,16 @@ def check_exporters(formats: Iterable[str]) -> None:
                     import nrrd  # noqa: F401
                 except ImportError as err:
                     raise ImportError(f"writing .nrrd needs the 'pynrrd' package; {_INSTALL_HINT}") from err
+            elif fmt in ("ply", "obj"):
+                marching_cubes()
     except (ImportError, ValueError) as err:
         raise ConfigError(f"export.formats: {err}") from None
 
 
 def _check_formats(formats: Iterable[str]) -> list[str]:
     formats = [formats] if isinstance(formats, str) else list(formats)
-    expanded = [f for name in formats for f in (FORMATS if name == "all" else [name])]
+    expanded = [f for name in formats for f in ALIASES.get(name, [name])]
     unknown = sorted(set(expanded) - set(FORMATS))
     if unknown:
-        raise ValueError(f"unknown export format(s) {unknown}; choose from {list(FORMATS)} or 'all'")
+        raise ValueError(f"unknown export format(s) {unknown}; choose from {list(FORMATS)} or {list(ALIASES)}")
     return list(dict.fromkeys(expanded))

@@ -248,7 +248,7 @@ def orbit_cameras(
     elevation lifts the camera towards ``up``; distance in world units; ``fov_deg`` the
     vertical field of view. Pixel centres at +0.5 (flamerecon's convention).
     """
-    from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
+    from flamerecon.geometry.cameras import look_at_camera
 
     up_dir = np.asarray(up, dtype=np.float64)
     up_dir = up_dir / np.linalg.norm(up_dir)
@@ -262,11 +262,8 @@ def orbit_cameras(
                           + math.sin(el) * up_dir)
     centre = np.asarray(target, dtype=np.float64)
     eyes = centre + offsets
-    w2c = look_at(torch.from_numpy(eyes), torch.from_numpy(centre).expand(len(az), 3),
-                  up=torch.from_numpy(up_dir))
-    focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2)
-    K = intrinsics_matrix(focal, focal, width / 2, height / 2).expand(len(az), 3, 3)
-    return make_cameras(K, w2c, height, width)
+    return look_at_camera(torch.from_numpy(eyes), torch.from_numpy(centre).expand(len(az), 3),
+                          torch.from_numpy(up_dir), width, height, fov_deg)
 
 
 def framing_distance(bbox_min, bbox_max, fov_deg: float, margin: float = 1.1) -> float:

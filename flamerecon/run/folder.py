@@ -16,15 +16,15 @@ import torch
 
 from flamerecon.arguments import fields, instance, tensor, value
 from flamerecon.device import resolve_device
-from flamerecon.errors import RunFolderError
+from flamerecon.errors import ConfigError, RunFolderError
 from flamerecon.evaluate.scores import native_scores, score, write_renders
 from flamerecon.fit.build import scene_grid, split_views
 from flamerecon.fit.checks import check_density_fits
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Reconstruction, mean_of
-from flamerecon.geometry.cameras import K_of, make_cameras
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.outputs.cameras_file import camera_records, cameras_from_records
 from flamerecon.outputs.export import load_density, save_density
 from flamerecon.outputs.figures import top_view
 from flamerecon.rules import integer, list_of
@@ -40,32 +40,10 @@ RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "log", "checkpoint", "
 
 def cameras_record(scene: Scene, train: list[int],
                    photometry: dict[str, tuple[float, float]] | None = None) -> list[dict]:
-    """cameras.json content: every camera with K, world_to_camera, size, its role, and its
-    ``gain`` and ``offset`` (image = gain * integral + offset; 1 and 0 unless fitted); after
-    calibration refinement K and world_to_camera are the refined ones and ``K_calibrated``,
-    ``world_to_camera_calibrated`` the scene's own."""
-    K = K_of(scene.cameras).cpu()
-    E = scene.cameras.extrinsics.cpu()
-    photometry = photometry or {}
-    original = scene.meta.get("calibrated_cameras")
-    records = [
-        {
-            "name": name,
-            "K": K[i].tolist(),
-            "world_to_camera": E[i].tolist(),
-            "width": int(scene.cameras.width[i]),
-            "height": int(scene.cameras.height[i]),
-            "split": "train" if i in train else "holdout",
-            "gain": photometry.get(name, (1.0, 0.0))[0],
-            "offset": photometry.get(name, (1.0, 0.0))[1],
-        }
-        for i, name in enumerate(scene.views)
-    ]
-    if original is not None:
-        for i, record in enumerate(records):
-            record["K_calibrated"] = K_of(original)[i].cpu().tolist()
-            record["world_to_camera_calibrated"] = original.extrinsics[i].cpu().tolist()
-    return records
+    """cameras.json content (:func:`~flamerecon.outputs.cameras_file.camera_records`): every
+    camera of ``scene``; after calibration refinement K and world_to_camera are the refined ones
+    and ``K_calibrated``, ``world_to_camera_calibrated`` the scene's own."""
+    return camera_records(scene.views, scene.cameras, train, photometry, scene.meta.get("calibrated_cameras"))
 
 
 def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
@@ -195,13 +173,10 @@ def recorded_calibration(run_dir: Path, scene: Scene) -> tuple[Scene, dict | Non
     cams = json.loads(path.read_text()).get("cameras", []) if path.is_file() else []
     if not cams or "K_calibrated" not in cams[0]:
         return scene, None
-    by_name = {c["name"]: c for c in cams}
-    missing = [v for v in scene.views if v not in by_name]
-    if missing:
-        raise RunFolderError(f"{path}: no camera named {missing}; the scene has {scene.views}")
-    K = torch.tensor([by_name[v]["K"] for v in scene.views])
-    E = torch.tensor([by_name[v]["world_to_camera"] for v in scene.views])
-    cameras = make_cameras(K, E, scene.cameras.height, scene.cameras.width)
+    try:
+        cameras = cameras_from_records(cams, scene.views, scene.cameras.height, scene.cameras.width, str(path))
+    except ConfigError as err:
+        raise RunFolderError(str(err)) from None
     old = run_dir / "metrics.json"
     record = json.loads(old.read_text()).get("calibration") if old.is_file() else None
     return replace(scene, cameras=cameras, meta={**scene.meta, "calibrated_cameras": scene.cameras}), record

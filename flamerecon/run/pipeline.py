@@ -26,6 +26,7 @@ from flamerecon.fit.reconstruct import Photometry, mean_of
 from flamerecon.fit.refine_cameras import RefineOptions
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.export import check_exporters, export_run
+from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.run.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from flamerecon.run.config import options_from_config, start_run
 from flamerecon.run.folder import (
@@ -122,7 +123,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     formats = cfg.get("export", {}).get("formats", [])
     if formats:
         clock = time.perf_counter()
-        export_run(run_dir, list(formats))
+        export_run(run_dir, list(formats), float(cfg.export.get("iso", DEFAULT_ISO)))
         timing["export"] = time.perf_counter() - clock
     metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
     write_json_atomic(run_dir / "metrics.json", metrics)

@@ -36,6 +36,7 @@ def summary_table(metrics: dict) -> str:
         rows.append((f"calibration ({c['refine']}{fitted})", (
             f"training {c['train_psnr_before']:.2f} -> {c['train_psnr_after']:.2f} dB, "
             f"held-out before refinement {c['heldout_psnr_before']:.2f} dB")))
+        rows.append(("  cameras", calibration_source(c)))
         rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "
                                 f"focal x{r['focal_scale']:.4f}, principal point "
                                 f"({r['principal_point_px'][0]:+.2f}, {r['principal_point_px'][1]:+.2f}) px, "
@@ -59,6 +60,13 @@ def summary_table(metrics: dict) -> str:
             for r in s["levels"])))
     width = max(len(r[0]) for r in rows)
     return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+
+
+def calibration_source(record: dict) -> str:
+    """Where a run's refined cameras came from, from metrics.json's ``calibration`` record."""
+    if record.get("source") == "read":
+        return f"read from {record['file']}"
+    return "fitted now" + (f", kept in {record['file']}" if record.get("file") else " (this frame's, in cameras.json)")
 
 
 def cells_of(resolution) -> str:
