@@ -15,14 +15,14 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_value
-from flamerecon.errors import ArgumentError
+from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import render_image
-from flamerecon.outputs.export import Density, export_density, load_density
+from flamerecon.outputs.export import ALIASES, FORMATS, Density, export_density, load_density
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.resources import config_dir
 from flamerecon.run.folder import Run
@@ -39,9 +39,16 @@ def preset(scene: str = "synthetic", *overrides: str) -> ReconstructionOptions:
     instance("preset.scene", scene, str, "a scene name of conf/scene/*.yaml")
     for k, o in enumerate(overrides):
         instance(f"preset.overrides[{k}]", o, str, "a command-line override key=value")
-    from flamerecon.run.preset import preset as composed
+    from flamerecon.run.preset import preset as composed, scene_presets
 
-    return composed(scene, *overrides)
+    if scene not in scene_presets():
+        raise wrong_value("preset.scene", scene, f"a preset of conf/scene/: one of {scene_presets()}")
+    try:
+        return composed(scene, *overrides)
+    except ArgumentError:
+        raise
+    except ConfigError as err:  # Hydra's word on an override: the override is the argument at fault
+        raise ArgumentError(f"preset.{err}" if str(err).startswith("overrides") else str(err)) from None
 
 
 def load_scene(scene: str | Mapping = "synthetic", **options) -> Scene:
@@ -57,20 +64,26 @@ def load_scene(scene: str | Mapping = "synthetic", **options) -> Scene:
     if isinstance(scene, str) and (config_dir() / "scene" / f"{scene}.yaml").is_file():
         from flamerecon.run.preset import scene_preset  # Hydra composes it, as for the command line
 
+        register_built_in()
         node = scene_preset(scene)
+        known = SCENE_KEYS.get(node.get("name"))
+        # the preset's run-level keys (scene.frames: which frames a run solves jointly) are not the loader's
+        node = {k: v for k, v in node.items() if known is None or k in known}
+    given = set(options) | (set() if isinstance(scene, str) else set(node))
     node = {**node, **options}
     name = node.get("name")
     register_built_in()
     if name not in SCENE_LOADERS:
         raise wrong_value("scene.name", name, f"one of {sorted(SCENE_LOADERS)}")
     known = SCENE_KEYS.get(name)
-    unknown = [key for key in node if known is not None and key not in known]
+    unknown = [key for key in node if key in given and known is not None and key not in known]
     if unknown:
         raise ArgumentError(f"scene.{unknown[0]}: scene '{name}' has no option {unknown[0]!r}; its options "
                             f"are {sorted(known)}")
     if node.get("holdout") is not None:
         node["holdout"] = one_or_many(node["holdout"])  # one view, not its name's characters
-    check_fields("", leaves({"scene": node}))
+    # a preset's value left ??? (None) is the loader's to name ("no data folder given"); given ones are checked
+    check_fields("", leaves({"scene": {k: v for k, v in node.items() if k in given or v is not None}}))
     return load_scene_node(node)
 
 
@@ -116,6 +129,15 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
              "a Reconstruction, a Run, or a run folder or density.npz")
     instance("export.stem", stem, (str, os.PathLike), "a path without suffix")
     value("export.iso", iso, RULES["export.iso"].check)
+    names = [formats] if isinstance(formats, str) else formats
+    instance("export.formats", names, Iterable, "a format name or a list of them")
+    names = list(names)
+    for k, name in enumerate(names):
+        instance(f"export.formats[{k}]", name, str, "a format name")
+    known = [*FORMATS, *ALIASES]
+    unknown = [name for name in names if name not in known]
+    if unknown or not names:
+        raise wrong_value("export.formats", formats, f"one or more of {known}")
     if isinstance(result, (str, os.PathLike)):
         volume = load_density(result)
     else:

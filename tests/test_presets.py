@@ -54,10 +54,10 @@ def test_the_scalarflow_preset_brings_its_capture_settings_not_the_synthetic_def
 
 
 @pytest.mark.parametrize("args, message", [
-    (("flame",), r"^scene: no preset named 'flame'; choose one of \[.*'scalarflow'"),
-    (("synthetic", "solver=nope"), r"^overrides: .*nope"),
+    (("flame",), r"^preset\.scene: got 'flame'; .* one of \[.*'scalarflow'"),
+    (("synthetic", "solver=nope"), r"^preset\.overrides: .*nope"),
     (("synthetic", "solver.max_iters=0"), r"^solver\.max_iters: got 0; "),
-    (("synthetic", "scene=scalarflow"), r"^overrides: 'scene=scalarflow' is not an override"),
+    (("synthetic", "scene=scalarflow"), r"^preset\.overrides: 'scene=scalarflow' is not an override"),
 ])
 def test_a_bad_preset_is_one_line_naming_what_to_fix(args, message):
     with pytest.raises(ConfigError, match=message) as err:

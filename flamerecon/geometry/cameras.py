@@ -14,8 +14,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from kornia.geometry.camera import PinholeCamera
+
+from flamerecon.arguments import tensor, value, wrong_type, wrong_value
+from flamerecon.rules import integer, number
 
 
 def intrinsics_matrix(fx, fy, cx, cy) -> torch.Tensor:
@@ -97,11 +101,39 @@ def look_at_camera(eye, target, up=(0.0, 1.0, 0.0), width: int = 320, height: in
     """Pinhole cameras at ``eye`` ((3,) or (B, 3), world units) looking at ``target``, with
     ``up`` the world direction upwards in the image, a ``width`` x ``height`` pixel image,
     ``fov_deg`` its vertical field of view and the principal point at the image centre: a
-    kornia batch of B cameras (1 for one eye), ready for :func:`flamerecon.render`."""
+    kornia batch of B cameras (1 for one eye), ready for :func:`flamerecon.render`.
+    A bad argument is an :class:`~flamerecon.errors.ArgumentError` (or ArgumentTypeError) naming it."""
+    eye = points("look_at_camera.eye", eye)
+    target = points("look_at_camera.target", target, len(eye))
+    up = points("look_at_camera.up", up, len(eye))
+    value("look_at_camera.width", width, integer(1))
+    value("look_at_camera.height", height, integer(1))
+    value("look_at_camera.fov_deg", fov_deg, number(0.0, 180.0, lo_open=True, hi_open=True))
+    if bool(((target - eye).norm(dim=-1) == 0).any()):
+        raise wrong_value("look_at_camera.target", target, "away from the eye (a direction to look in)")
+    if bool((torch.linalg.cross(target - eye, up.expand_as(eye)).norm(dim=-1) == 0).any()):
+        raise wrong_value("look_at_camera.up", up, "a direction not along the line of sight")
     w2c = look_at(eye, target, up)
     focal = 0.5 * height / math.tan(math.radians(fov_deg) / 2)
     K = intrinsics_matrix(focal, focal, width / 2, height / 2).expand(w2c.shape[0], 3, 3)
     return make_cameras(K, w2c, height, width)
+
+
+def points(name: str, given, count: int | None = None) -> torch.Tensor:
+    """``given`` (a sequence, array or tensor) as finite float64 points (B, 3), B = 1 for one
+    point; with ``count``, one point or ``count`` of them. Else an ArgumentError naming ``name``."""
+    if isinstance(given, (str, bytes)) or given is None:
+        raise wrong_type(name, given, "a point (x, y, z) or a (B, 3) array of them")
+    try:
+        t = torch.as_tensor(given if isinstance(given, torch.Tensor) else np.asarray(given, dtype=np.float64))
+    except (TypeError, ValueError):
+        raise wrong_type(name, given, "a point (x, y, z) or a (B, 3) array of them") from None
+    t = tensor(name, t.to(torch.float64) if t.dtype != torch.bool else t, "(3,) or (B, 3)")
+    if t.shape[-1:] != (3,) or t.ndim > 2 or (count is not None and t.numel() != 3 and len(t.reshape(-1, 3)) != count):
+        raise wrong_value(name, t, "a point (x, y, z)" if count == 1 else "a point (x, y, z) or a (B, 3) array of "
+                          + ("them" if count is None else f"{count} of them, one per eye"))
+    tensor(name, t, "(3,) or (B, 3)", finite=True)
+    return t.reshape(-1, 3).cpu()
 
 
 def camera_centers(cams: PinholeCamera) -> torch.Tensor:

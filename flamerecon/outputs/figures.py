@@ -17,8 +17,10 @@ import cv2
 import numpy as np
 import torch
 
+from flamerecon.arguments import value, wrong_type, wrong_value
 from flamerecon.outputs.atomic import atomic_path
 from flamerecon.outputs.export import voxel_size
+from flamerecon.rules import number
 
 _AXES = {"x": 2, "y": 1, "z": 0}  # world axis -> array axis of (nz, ny, nx)
 _INSTALL_HINT = "install it with: pip install 'flamerecon[figures]'"
@@ -248,15 +250,22 @@ def orbit_cameras(
     elevation lifts the camera towards ``up``; distance in world units; ``fov_deg`` the
     vertical field of view. Pixel centres at +0.5 (flamerecon's convention).
     """
-    from flamerecon.geometry.cameras import look_at_camera
+    from flamerecon.geometry.cameras import look_at_camera, points
 
+    azimuths = _angles("orbit_cameras.azimuth_deg", azimuth_deg)
+    value("orbit_cameras.elevation_deg", elevation_deg, number(-90.0, 90.0))
+    value("orbit_cameras.distance", distance, number(0.0, lo_open=True))
+    target = points("orbit_cameras.target", target, 1)[0].numpy()
+    up = points("orbit_cameras.up", up, 1)[0].numpy()
+    if not np.linalg.norm(up):
+        raise wrong_value("orbit_cameras.up", up, "a non-zero direction")
     up_dir = np.asarray(up, dtype=np.float64)
     up_dir = up_dir / np.linalg.norm(up_dir)
     first = np.eye(3)[_least_aligned(up_dir)]
     first = first - (first @ up_dir) * up_dir
     first /= np.linalg.norm(first)
     second = np.cross(up_dir, first)  # +x for up = +y, first = +z
-    az = np.radians(np.atleast_1d(np.asarray(azimuth_deg, dtype=np.float64)))
+    az = np.radians(azimuths)
     el = math.radians(float(elevation_deg))
     offsets = distance * (math.cos(el) * (np.cos(az)[:, None] * first + np.sin(az)[:, None] * second)
                           + math.sin(el) * up_dir)
@@ -264,6 +273,21 @@ def orbit_cameras(
     eyes = centre + offsets
     return look_at_camera(torch.from_numpy(eyes), torch.from_numpy(centre).expand(len(az), 3),
                           torch.from_numpy(up_dir), width, height, fov_deg)
+
+
+def _angles(name: str, given) -> np.ndarray:
+    """``given`` (a number or a non-empty flat sequence of finite numbers) as a float64 array."""
+    items = [given] if not isinstance(given, (Sequence, np.ndarray, torch.Tensor)) or isinstance(given, str) else given
+    items = list(items.tolist() if hasattr(items, "tolist") else items)
+    want = "an angle in degrees or a non-empty list of them"
+    if given is None or isinstance(given, str) or any(isinstance(a, bool) or not isinstance(a, (int, float))
+                                                      for a in items):
+        raise wrong_type(name, given, want)
+    if not items:
+        raise wrong_value(name, given, want)
+    for a in items:
+        value(name, a, number())
+    return np.asarray(items, dtype=np.float64)
 
 
 def framing_distance(bbox_min, bbox_max, fov_deg: float, margin: float = 1.1) -> float:
