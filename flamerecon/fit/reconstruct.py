@@ -374,14 +374,23 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
 
         def solve_density(views: list[int], cameras) -> torch.Tensor:
             fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
-            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid)
+            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid,
+                          scored=False)
             return setup.volume(fit(setup, fold).result.x)
 
         return CalibrationFrame(images, scene_masks(source, images, options), solve_density)
 
     this = frame_of(scene)
+    fitted = list(train)
+    if refining.rig:
+        frame = scene.meta.get("config", {}).get("frame", scene.meta.get("frame"))
+        if frame in refining.frames:
+            raise ConfigError(f"calibration.rig: frame {frame} is reconstructed and one of calibration.frames "
+                              f"{list(refining.frames)}, so its held-out views would enter the camera fit; "
+                              "fit the rig to other frames")
+        fitted = list(range(len(scene.views)))
     if refining.frames:
-        found = capture_refinement(scene, train, grid, options, device, frame_of)
+        found = capture_refinement(scene, fitted, grid, options, device, frame_of)
         initial = this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
     else:
         found = refine(cameras_to(scene.cameras, device), train, [this], grid, refining, step)
@@ -389,14 +398,15 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
                       meta={**scene.meta, "calibrated_cameras": scene.cameras})
     before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
-    report = correction_report(camera_subset(scene.cameras, train), camera_subset(refined.cameras, train),
+    report = correction_report(camera_subset(scene.cameras, fitted), camera_subset(refined.cameras, fitted),
                                grid, found.corrections.cpu())
     record = {
-        "refine": refining.refine, "frames": list(refining.frames), "rounds": found.history,
+        "refine": refining.refine, "frames": list(refining.frames), "rig": bool(refining.rig),
+        "rounds": found.history,
         "seconds": time.perf_counter() - started,
         "train_psnr_before": mean_of(before["train"], "psnr"),
         "heldout_psnr_before": mean_of(before["heldout"], "psnr"),
-        "cameras": {scene.views[v]: r for v, r in zip(train, report)},
+        "cameras": {scene.views[v]: r for v, r in zip(fitted, report)},
     }
     return refined, record
 
