@@ -39,7 +39,8 @@ def preset(scene: str = "synthetic", *overrides: str) -> ReconstructionOptions:
     instance("preset.scene", scene, str, "a scene name of conf/scene/*.yaml")
     for k, o in enumerate(overrides):
         instance(f"preset.overrides[{k}]", o, str, "a command-line override key=value")
-    from flamerecon.run.preset import preset as composed, scene_presets
+    from flamerecon.run.preset import preset as composed
+    from flamerecon.run.preset import scene_presets
 
     if scene not in scene_presets():
         raise wrong_value("preset.scene", scene, f"a preset of conf/scene/: one of {scene_presets()}")

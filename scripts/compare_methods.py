@@ -10,8 +10,9 @@ all-black floor, and (``--loo``) the leave-one-view-out mean over every camera.
 Each ``--method NAME=OVERRIDES`` is a train.py run with those overrides on top of the shared
 ones (an empty one is the scene's default); every frame is loaded once and reconstructed by
 each method through the Python API, as ``python train.py`` would. Report on frames that chose
-none of the settings compared (say which did). Prints one row per frame and method, then the
-means over frames; ``--out`` writes every figure as JSON.
+none of the settings compared (say which did). Prints one row per frame and method (held-out
+PSNR, SSIM and detail correlation full frame and inside the captured silhouettes, training PSNR
+and detail, the black floor), then the means over frames; ``--out`` writes every figure as JSON.
 """
 
 from __future__ import annotations
@@ -42,14 +43,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("overrides", nargs="*", help="train.py overrides shared by every method")
     parser.add_argument("--frames", type=frame_list, required=True, help="comma-separated scene.frame values")
     parser.add_argument("--method", type=method, action="append", required=True, metavar="NAME=OVERRIDES")
-    parser.add_argument("--loo", action="store_true", help="also the leave-one-view-out mean over every camera")
+    parser.add_argument("--loo", action="store_true", help="also the leave-one-view-out mean over every camera "
+                        "(strict protocol: each held-out camera as the calibration file gives it)")
+    parser.add_argument("--rig", action="store_true", help="with --loo, also the rig-calibrated leave-one-view-out "
+                        "(calibration.rig=true: every camera refined on calibration.frames, never scored)")
     parser.add_argument("--out", type=Path, help="JSON file of every figure")
     args = parser.parse_args(argv)
 
+    columns = [  # (key, heading, format) of each figure of a row
+        ("heldout", "held-out dB", "12.2f"), ("ssim", "SSIM", "7.4f"), ("detail", "detail", "7.3f"),
+        ("detail_sil", "det sil", "7.3f"), ("train", "train dB", "9.2f"), ("train_detail", "tr det", "7.3f"),
+        ("black", "black dB", "9.2f"),
+        *([("loo", "LOO mean dB", "12.2f"), ("loo_detail", "LOO det", "8.3f")] if args.loo else []),
+        *([("rig", "rig LOO dB", "11.2f"), ("rig_detail", "rig det", "8.3f")] if args.loo and args.rig else []),
+        ("seconds", "seconds", "8.1f")]
+
+    def line(frame: str, name: str, row: dict) -> str:
+        return f"{frame:>5} {name:<12} " + " ".join(format(row[k], f) for k, _, f in columns)
+
     def run() -> None:
         rows = []
-        print(f"{'frame':>5} {'method':<12} {'held-out dB':>12} {'train dB':>9} {'black dB':>9}"
-              + (f" {'LOO mean dB':>12}" if args.loo else "") + f" {'seconds':>8}", flush=True)
+        print(f"{'frame':>5} {'method':<12} " + " ".join(f"{h:>{f.split('.')[0]}}" for _, h, f in columns),
+              flush=True)
         for frame in args.frames:
             scene = None
             for name, extra in args.method:
@@ -57,26 +72,30 @@ def main(argv: list[str] | None = None) -> int:
                 scene = scene if scene is not None else fr.load_scene(cfg.scene)
                 clock = time.perf_counter()
                 metrics = fr.score(fr.reconstruct(scene, options_from_config(cfg)))
+                held = metrics["heldout"]
                 row = {"frame": frame, "method": name, "overrides": extra,
-                       "heldout": mean_of(metrics["heldout"], "psnr"), "train": mean_of(metrics["train"], "psnr"),
-                       "black": mean_of(metrics["heldout"], "psnr_black"),
-                       "seconds": time.perf_counter() - clock}
+                       "heldout": mean_of(held, "psnr"), "ssim": mean_of(held, "ssim"),
+                       "detail": mean_of(held, "detail"), "detail_sil": mean_of(held, "detail_silhouette"),
+                       "train": mean_of(metrics["train"], "psnr"), "train_detail": mean_of(metrics["train"], "detail"),
+                       "black": mean_of(held, "psnr_black"), "seconds": time.perf_counter() - clock}
                 if args.loo:
                     loo = leave_one_out(cfg, Path(args.out or "outputs/compare").with_suffix("") / f"{frame}-{name}",
                                         scene=scene)
-                    row["loo"] = loo["mean"]["psnr"]
+                    row["loo"], row["loo_detail"] = loo["mean"]["psnr"], loo["mean"]["detail"]
                     row["loo_views"] = {v: r["psnr"] for v, r in loo["views"].items()}
+                if args.loo and args.rig:
+                    rig_cfg = compose_train([*args.overrides, *extra, f"scene.frame={frame}", "calibration.rig=true"])
+                    rig = leave_one_out(rig_cfg, Path(args.out or "outputs/compare").with_suffix("")
+                                        / f"{frame}-{name}-rig", scene=scene)
+                    row["rig"], row["rig_detail"] = rig["mean"]["psnr"], rig["mean"]["detail"]
+                    row["rig_views"] = {v: r["psnr"] for v, r in rig["views"].items()}
                 rows.append(row)
-                print(f"{frame:5d} {name:<12} {row['heldout']:12.2f} {row['train']:9.2f} {row['black']:9.2f}"
-                      + (f" {row['loo']:12.2f}" if args.loo else "") + f" {row['seconds']:8.1f}", flush=True)
+                print(line(str(frame), name, row), flush=True)
                 if args.out:
                     write_json_atomic(args.out, {"shared": args.overrides, "rows": rows})
         for name, _ in args.method:
             mine = [r for r in rows if r["method"] == name]
-            keys = ["heldout", "train", "black", *(["loo"] if args.loo else [])]
-            means = {k: sum(r[k] for r in mine) / len(mine) for k in keys}
-            print(f"{'mean':>5} {name:<12} {means['heldout']:12.2f} {means['train']:9.2f} {means['black']:9.2f}"
-                  + (f" {means['loo']:12.2f}" if args.loo else ""))
+            print(line("mean", name, {k: sum(r[k] for r in mine) / len(mine) for k, _, _ in columns}))
 
     return run_script(run, args.debug)
 

@@ -1,6 +1,6 @@
 """A real sequence end to end: each frame of a capture reconstructed in turn through the Python
 API, cold or warm-started from the previous frame's density; prints per frame the time split,
-iterations and held-out PSNR, then frames per minute.
+iterations and held-out PSNR, SSIM and detail correlation, then frames per minute.
 
     python scripts/sequence_benchmark.py --frames 0 74 [--warm] [--every 1] \
         [scene=scalarflow by default, any train.py overrides ...]
@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{options.solver.name} on a {options.grid.resolution}-cell grid, calibration.refine="
               f"{options.calibration.refine}", flush=True)
         print(f"{'frame':>5} {'load s':>7} {'recon s':>8} {'score s':>8} {'iters':>6} {'held-out dB':>12} "
-              f"{'train dB':>9}", flush=True)
+              f"{'SSIM':>7} {'detail':>7} {'train dB':>9}", flush=True)
         previous, rows, started = None, [], time.perf_counter()
         for t in frames:
             clock = time.perf_counter()
@@ -48,14 +48,17 @@ def main(argv: list[str] | None = None) -> int:
             metrics = fr.score(rec)
             scored = time.perf_counter()
             held, train = mean_of(metrics["heldout"], "psnr"), mean_of(metrics["train"], "psnr")
-            rows.append((loaded - clock, solved - loaded, scored - solved, rec.fit.result.iterations, held, train))
+            ssim, detail = mean_of(metrics["heldout"], "ssim"), mean_of(metrics["heldout"], "detail")
+            rows.append((loaded - clock, solved - loaded, scored - solved, rec.fit.result.iterations, held,
+                         ssim, detail, train))
             print(f"{t:5d} {rows[-1][0]:7.2f} {rows[-1][1]:8.2f} {rows[-1][2]:8.2f} {rows[-1][3]:6d} "
-                  f"{held:12.2f} {train:9.2f}", flush=True)
+                  f"{held:12.2f} {ssim:7.4f} {detail:7.3f} {train:9.2f}", flush=True)
             previous = rec.density.cpu()
         wall = time.perf_counter() - started
         data = np.array(rows)
         print(f"mean  {data[:, 0].mean():7.2f} {data[:, 1].mean():8.2f} {data[:, 2].mean():8.2f} "
-              f"{data[:, 3].mean():6.0f} {data[:, 4].mean():12.2f} {data[:, 5].mean():9.2f}")
+              f"{data[:, 3].mean():6.0f} {data[:, 4].mean():12.2f} {data[:, 5].mean():7.4f} {data[:, 6].mean():7.3f} "
+              f"{data[:, 7].mean():9.2f}")
         print(f"{len(frames)} frames in {wall:.1f} s wall: {60 * len(frames) / wall:.2f} frames per minute")
 
     return run_script(run, args.debug)

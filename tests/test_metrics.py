@@ -96,3 +96,42 @@ def test_resample_to_gives_exact_cell_averages_for_non_integer_ratios():
     # and the old adaptive pooling would not pass this
     pooled = torch.nn.functional.adaptive_avg_pool1d(fine[None, None], 11)[0, 0]
     assert not torch.allclose(pooled, exact, atol=1e-3)
+
+
+def test_detail_correlation_sees_fine_structure_and_nothing_else():
+    """The detail correlation: 1 for the image itself and any gain/offset of it (exposure is not
+    detail), lower the more the render is blurred, NaN where a band is flat, and restricted to
+    the mask when given."""
+    import kornia
+
+    from flamerecon.evaluate.metrics import detail_correlation
+
+    g = torch.Generator().manual_seed(3)
+    image = kornia.filters.gaussian_blur2d(torch.rand(1, 3, 48, 40, generator=g), (5, 5), (1.0, 1.0))[0]
+    assert detail_correlation(image, image) == pytest.approx(1.0)
+    assert detail_correlation(0.5 * image + 0.2, image) == pytest.approx(1.0)
+    blurred = [kornia.filters.gaussian_blur2d(image[None], (k, k), (s, s))[0] for k, s in ((7, 1.0), (13, 2.0), (25, 4.0))]
+    scores = [detail_correlation(b, image) for b in blurred]
+    assert 1.0 > scores[0] > scores[1] > scores[2]
+    assert scores[2] < 0.3  # a blob keeps almost none of the wisps
+    assert math.isnan(detail_correlation(torch.full_like(image, 0.3), image))
+    other = image.clone()
+    other[:, :, 20:] = torch.rand(3, 48, 20, generator=g)
+    left = torch.zeros(48, 40, dtype=torch.bool)
+    left[:, :14] = True  # the left half, away from the seam that the blur mixes across
+    assert detail_correlation(other, image, mask=left) == pytest.approx(1.0)
+    assert detail_correlation(other, image) < 0.9
+
+
+def test_the_detail_band_keeps_its_size_in_native_pixels():
+    from types import SimpleNamespace
+
+    from flamerecon.evaluate.scores import detail_sigma
+
+    def scene_with(config):  # detail_sigma reads the scene's loader options only
+        return SimpleNamespace(meta={"config": config})
+
+    assert detail_sigma(scene_with({"downscale": 4})) == 2.0
+    assert detail_sigma(scene_with({"downscale": 2})) == 4.0
+    assert detail_sigma(scene_with({"downscale": 1})) == 8.0
+    assert detail_sigma(scene_with({"name": "synthetic"})) == 2.0

@@ -20,14 +20,22 @@ from flamerecon.fit.refine_cameras import (
     CalibrationFrame,
     CameraFit,
     RefineOptions,
+    align_similarity,
     corrected_cameras,
     fit_pixels,
     gauge_basis,
     refine,
+    similarity,
     skew,
     with_cameras,
 )
-from flamerecon.geometry.cameras import K_of, camera_centers, camera_subset, project_points
+from flamerecon.geometry.cameras import (
+    K_of,
+    camera_centers,
+    camera_subset,
+    make_cameras,
+    project_points,
+)
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.run.pipeline import evaluate, reconstruct, refine_options, summary_table
@@ -214,6 +222,30 @@ def test_calibration_frames_fit_the_cameras_once_per_capture_and_read_them_back(
     assert torch.equal(refined.cameras.extrinsics[holdout], first.cameras.extrinsics[holdout])
 
 
+def test_the_rig_protocol_refines_every_camera_on_frames_that_are_not_scored(tmp_path, monkeypatch):
+    """calibration.rig: the held-out camera is refined with the others on calibration.frames
+    (one rig), so it moves where the strict protocol keeps it; a scored frame among the
+    calibration frames, or a rig without frames, is refused by name."""
+    import flamerecon as fr
+    from flamerecon.errors import ConfigError
+    from flamerecon.fit.reconstruct import calibrated_scene
+
+    monkeypatch.setenv("FLAMERECON_CACHE_DIR", str(tmp_path))
+    options = fr.ReconstructionOptions(
+        grid=fr.GridOptions(resolution=16), solver=fr.SolverOptions().with_values(max_iters=20),
+        calibration=RefineOptions(refine="pose", rounds=1, iterations=2, frames=(3, 6), rig=True), device="cpu")
+    scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32, frame=0)
+    refined, record = calibrated_scene(scene, options, torch.device("cpu"))
+    _, holdout = scene.split(None)
+    assert record["rig"] and sorted(record["cameras"]) == sorted(scene.views)
+    assert not torch.equal(refined.cameras.extrinsics[holdout], scene.cameras.extrinsics[holdout])
+    scored = fr.load_scene({**scene.meta["config"], "frame": 6})
+    with pytest.raises(ConfigError, match=r"calibration\.rig: frame 6 is reconstructed"):
+        calibrated_scene(scored, options, torch.device("cpu"))
+    with pytest.raises(ValueError, match=r"calibration\.rig: needs calibration\.frames"):
+        RefineOptions(refine="pose", rig=True)
+
+
 def test_calibration_frames_refuse_a_scene_that_does_not_know_its_capture():
     import dataclasses
 
@@ -285,3 +317,42 @@ def test_evaluate_scores_a_refined_run_with_its_refined_cameras(refined_run):
     for name, values in metrics["train"].items():
         assert again["train"][name]["psnr"] == pytest.approx(values["psnr"], abs=1e-3)
     assert again["calibration"]["train_psnr_before"] == metrics["calibration"]["train_psnr_before"]
+
+
+def test_the_similarity_gauge_undoes_a_common_motion_of_the_rig_and_keeps_every_image():
+    """calibration.gauge=similarity: cameras that drifted as one rig (rotated 2 degrees about a
+    point off the pivot, shifted, scaled) plus a little each are put back where the calibration
+    had them, up to that little; and every point of the moved world projects through the
+    aligned cameras exactly where it projected through the drifted ones (the frame changes,
+    no image does)."""
+    from tests.helpers.views import ring_cameras
+
+    K = torch.tensor([[40.0, 0, 20.5], [0, 40.0, 16.5], [0, 0, 1]]).expand(5, 3, 3)
+    calibrated = make_cameras(K, ring_cameras(5).float(), torch.full((5,), 32.0), torch.full((5,), 40.0))
+    pivot = torch.tensor([0.05, 0.1, -0.02])
+    common = torch.tensor([[0.0, 0.035, 0.0]] * 5)  # the rig's common rotation (2 degrees) ...
+    wobble = 0.002 * torch.randn(5, 9, generator=torch.Generator().manual_seed(1))  # ... and each its own
+    theta = torch.zeros(5, 9)
+    theta[:, :3] = common[:, :3] + wobble[:, :3]
+    theta[:, 3:6] = torch.tensor([0.03, -0.02, 0.01]) + wobble[:, 3:6]
+    drifted = corrected_cameras(calibrated, theta, pivot)
+    scale = 1.01
+    drifted.extrinsics[:, :3, 3] *= scale  # a common scale: same images of a world scaled by 1/scale
+    aligned = align_similarity(drifted, calibrated, pivot)
+    before = (camera_centers(drifted) - camera_centers(calibrated)).norm(dim=-1)
+    after = (camera_centers(aligned) - camera_centers(calibrated)).norm(dim=-1)
+    assert before.min() > 0.05 and after.max() < 0.02 and after.max() < before.min() / 5
+    s, R, t = similarity(camera_frame_points_of(drifted, pivot), camera_frame_points_of(calibrated, pivot))
+    points = torch.rand(50, 3, generator=torch.Generator().manual_seed(2)).double() - 0.5
+    moved = (s * points @ R.T + t).float()
+    uv_drifted, _ = project_points(drifted, points.float())
+    uv_aligned, _ = project_points(aligned, moved)
+    assert torch.allclose(uv_aligned, uv_drifted, atol=1e-3)
+    same = align_similarity(calibrated, calibrated, pivot)
+    assert torch.allclose(same.extrinsics, calibrated.extrinsics, atol=1e-5)
+
+
+def camera_frame_points_of(cams, pivot):
+    from flamerecon.fit.refine_cameras import camera_frame_points
+
+    return camera_frame_points(cams, pivot)

@@ -13,7 +13,15 @@ import cv2
 import numpy as np
 import torch
 
-from flamerecon.evaluate.metrics import psnr, psnr_aligned, resample_to, ssim, volume_errors
+from flamerecon.evaluate.metrics import (
+    DETAIL_SIGMA_PX,
+    detail_correlation,
+    psnr,
+    psnr_aligned,
+    resample_to,
+    ssim,
+    volume_errors,
+)
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import apply_gain_offset
@@ -32,16 +40,29 @@ from flamerecon.scenes import Scene, load_scene
 from flamerecon.scenes.calibration import downscale_factor
 
 
+def captured_silhouettes(scene: Scene, views: list[int], options: dict) -> torch.Tensor:
+    """(V, H, W) bool: where the captured views show flame, by the silhouette ``options`` (the
+    run's ``silhouette:`` node); the scene's own masks, when it has them, stand for them."""
+    if scene.masks is not None:
+        return scene.masks[views].cpu()
+    return silhouettes(scene.images[views], **options).cpu()
+
+
 def silhouette_union(rendered: torch.Tensor, scene: Scene, views: list[int],
                      options: dict) -> torch.Tensor:
-    """(V, H, W) bool: where the captured view or the rendering shows flame, both by the
-    silhouette ``options`` (the run's ``silhouette:`` node); the scene's own masks, when it
-    has them, stand for the captured silhouettes."""
-    if scene.masks is not None:
-        captured = scene.masks[views].cpu()
-    else:
-        captured = silhouettes(scene.images[views], **options).cpu()
-    return captured | silhouettes(rendered.clamp(0, 1), **options).cpu()
+    """(V, H, W) bool: where the captured view (:func:`captured_silhouettes`) or the rendering
+    shows flame."""
+    return captured_silhouettes(scene, views, options) | silhouettes(rendered.clamp(0, 1), **options).cpu()
+
+
+def detail_sigma(scene: Scene) -> float:
+    """The detail band's sigma in pixels of ``scene``'s images: 2 px at 1/4 of the native
+    resolution, scaled with ``scene.downscale`` where the scene has one (4 px at 1/2, 8 px at
+    native), so that every resolution measures the same structures; 2 px otherwise."""
+    config = scene.meta.get("config") or {}
+    if "downscale" not in config:
+        return DETAIL_SIGMA_PX
+    return DETAIL_SIGMA_PX * 4.0 / downscale_factor(config)
 
 
 def masked_scores(rendered: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
@@ -113,10 +134,16 @@ def view_psnr(rendered: torch.Tensor, scene: Scene, view: int) -> float:
 
 
 def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
-                masks: torch.Tensor | None = None) -> dict[str, dict[str, float]]:
+                masks: torch.Tensor | None = None, captured_masks: torch.Tensor | None = None
+                ) -> dict[str, dict[str, float]]:
     """Per view, in recorded units (:meth:`Scene.to_recorded`): full-frame PSNR and SSIM against
-    the captured image, and the PSNR of an all-black prediction (the floor that gives a number its meaning); with ``masks``
-    (V, H, W) bool also both PSNRs inside them (see :func:`masked_scores`)."""
+    the captured image, the PSNR of an all-black prediction (the floor that gives a number its
+    meaning) and ``detail``, the full frame's detail correlation
+    (:func:`~flamerecon.evaluate.metrics.detail_correlation`, sigma :func:`detail_sigma`); with
+    ``masks`` (V, H, W) bool also both PSNRs inside them (see :func:`masked_scores`); with
+    ``captured_masks`` (V, H, W) bool, the captured silhouettes, ``detail_silhouette``: the
+    detail correlation inside them."""
+    sigma = detail_sigma(scene)
     out = {}
     for k, (img, v) in enumerate(zip(rendered, views)):
         img, captured = scene.to_recorded(img), scene.recorded_view(v)
@@ -125,10 +152,24 @@ def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
             "ssim": ssim(img, captured),
             "psnr_black": psnr(torch.zeros_like(captured), captured),
             "psnr_aligned": psnr_aligned(img, captured),
+            "detail": detail_correlation(img, captured, sigma),
         }
         if masks is not None:
             out[scene.views[v]].update(masked_scores(img, captured, masks[k]))
+        if captured_masks is not None:
+            out[scene.views[v]]["detail_silhouette"] = detail_correlation(img, captured, sigma, captured_masks[k])
     return out
+
+
+def score_rendered(rendered: torch.Tensor, scene: Scene, views: list[int],
+                   silhouette: dict | None = None) -> dict[str, dict[str, float]]:
+    """:func:`score_views` of renders (V, C, H, W) of ``views``; with ``silhouette`` options
+    also inside the silhouette union (PSNR) and the captured silhouettes (detail)."""
+    if silhouette is None:
+        return score_views(rendered, scene, views)
+    captured = captured_silhouettes(scene, views, silhouette)
+    union = captured | silhouettes(rendered.clamp(0, 1), **silhouette).cpu()
+    return score_views(rendered, scene, views, union, captured)
 
 
 def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
@@ -157,12 +198,8 @@ def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int],
         gain = torch.tensor([photometry[scene.views[v]][0] for v in train])
         offset = torch.tensor([photometry[scene.views[v]][1] for v in train])
         train_imgs = apply_gain_offset(train_imgs, gain, offset)
-    held_masks = train_masks = None
-    if silhouette is not None:
-        held_masks = silhouette_union(held_imgs, scene, holdout, silhouette)
-        train_masks = silhouette_union(train_imgs, scene, train, silhouette)
-    metrics = {"heldout": score_views(held_imgs, scene, holdout, held_masks),
-               "train": score_views(train_imgs, scene, train, train_masks)}
+    metrics = {"heldout": score_rendered(held_imgs, scene, holdout, silhouette),
+               "train": score_rendered(train_imgs, scene, train, silhouette)}
     if scene.truth is not None:
         truth = resample_to(scene.truth, grid.shape) if scene.truth_grid is not None and (
             scene.truth_grid.bbox_min == grid.bbox_min and scene.truth_grid.bbox_max == grid.bbox_max

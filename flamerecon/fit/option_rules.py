@@ -106,6 +106,8 @@ RULES: dict[str, Rule] = {
     "calibration.fit_against": Rule(choice("all", "others")),
     "calibration.resolution": Rule(integer(1), null=True),
     "calibration.frames": Rule(list_of(integer(0), what="a list of frame indices >= 0")),
+    "calibration.gauge": Rule(choice("mean", "similarity")),
+    "calibration.rig": Rule(boolean),
     "calibration.seed": Rule(integer(0)),
     "calibration.folder": Rule(text, null=True),
     "calibration.file": Rule(text, null=True),

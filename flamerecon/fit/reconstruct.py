@@ -426,16 +426,25 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
 
         def solve_density(views: list[int], cameras) -> torch.Tensor:
             fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
-            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid)
+            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid,
+                          scored=False)
             return setup.volume(fit(setup, fold).result.x)
 
         return CalibrationFrame(images, scene_masks(source, images, options), solve_density)
 
     this = frame_of(scene)
+    refined_views = list(train)  # the cameras the fit corrects: the training ones, every one for a rig
+    if refining.rig and not refining.file:
+        frame = scene.meta.get("config", {}).get("frame", scene.meta.get("frame"))
+        if frame in refining.frames:
+            raise ConfigError(f"calibration.rig: frame {frame} is reconstructed and one of calibration.frames "
+                              f"{list(refining.frames)}, so its held-out views would enter the camera fit; "
+                              "fit the rig to other frames")
+        refined_views = list(range(len(scene.views)))
     if refining.file:
         found = CaptureCalibration(file_cameras(refining.file, scene, train), [], "read", Path(refining.file))
     elif refining.frames:
-        found = capture_refinement(scene, train, grid, options, device, frame_of)
+        found = capture_refinement(scene, refined_views, grid, options, device, frame_of)
     else:
         fitted = refine(cameras_to(scene.cameras, device), train, [this], grid, refining, step)
         found = CaptureCalibration(fitted.cameras, fitted.history, "fitted", None)
@@ -445,14 +454,15 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
                       meta={**scene.meta, "calibrated_cameras": scene.cameras})
     before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
-    report = correction_report(camera_subset(scene.cameras, train), camera_subset(refined.cameras, train), grid)
+    report = correction_report(camera_subset(scene.cameras, refined_views),
+                               camera_subset(refined.cameras, refined_views), grid)
     record = {
-        "refine": refining.refine, "frames": list(refining.frames), "source": found.source,
+        "refine": refining.refine, "frames": list(refining.frames), "rig": bool(refining.rig), "source": found.source,
         "file": None if found.file is None else str(found.file), "rounds": found.history,
         "seconds": time.perf_counter() - started,
         "train_psnr_before": mean_of(before["train"], "psnr"),
         "heldout_psnr_before": mean_of(before["heldout"], "psnr"),
-        "cameras": {scene.views[v]: r for v, r in zip(train, report)},
+        "cameras": {scene.views[v]: r for v, r in zip(refined_views, report)},
     }
     return refined, record
 

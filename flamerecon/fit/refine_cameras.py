@@ -40,6 +40,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
 
+from flamerecon.errors import ArgumentError
 from flamerecon.fit.option_rules import check_section
 from flamerecon.geometry.cameras import (
     K_of,
@@ -81,6 +82,15 @@ class RefineOptions:
       (the cameras stand still); empty: the frame reconstructed. Fitted once per capture and
       options, kept as a cameras.json file in ``folder`` and read back from it
       (:func:`flamerecon.fit.capture_calibration.capture_refinement`);
+    - ``gauge``: how the refined cameras are held in the calibration's world frame: ``mean``
+      (zero-mean corrections, see the module doc) or ``similarity`` (also, after the fit, the
+      similarity that best maps the refined cameras' centres and axes onto the calibration's,
+      :func:`align_similarity`, applied to all of them: the rig keeps its shape, a camera that
+      was not refined sits where the calibration put it relative to the others);
+    - ``rig``: with ``frames``, refine every camera of the capture on those frames, the held-out
+      ones included (they are one rig): the frame reconstructed must not be one of ``frames``,
+      so that a held-out camera's pixels of a scored frame never enter the fit. Off (the
+      *strict* protocol): held-out cameras keep the calibration file's pose;
     - ``seed``: of the pixel subsets;
     - ``folder``: where a capture's calibration files are kept (None: ``calibration/`` in the
       cache folder, :func:`flamerecon.scenes.cache.cache_home`);
@@ -100,12 +110,17 @@ class RefineOptions:
     fit_against: str = "all"
     resolution: int | None = None
     frames: tuple[int, ...] = ()
+    gauge: str = "mean"
+    rig: bool = False
     seed: int = 0
     folder: str | None = None
     file: str | None = None
 
     def __post_init__(self) -> None:
         check_section("calibration", self)
+        if self.rig and not self.frames:
+            raise ArgumentError("calibration.rig: needs calibration.frames (the frames the rig is fitted to, none "
+                                "of them scored); set calibration.frames=[...] or calibration.rig=false")
 
     @property
     def active(self) -> list[int]:
@@ -157,6 +172,45 @@ def corrected_cameras(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Ten
     row1 = torch.stack([K[:, 1, 0], K[:, 1, 1] * scale, K[:, 1, 2] + theta[:, 8]], -1)
     K = torch.stack([row0, row1, K[:, 2]], 1)
     return make_cameras(K, E, cams.height, cams.width)
+
+
+def similarity(source: torch.Tensor, target: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """The similarity ``x -> s R x + t`` that maps points ``source`` (N, 3) onto ``target`` (N, 3)
+    in the least-squares sense (Umeyama 1991), in float64: (s, R (3, 3), t (3,))."""
+    a, b = source.double(), target.double()
+    mu_a, mu_b = a.mean(0), b.mean(0)
+    xa, xb = a - mu_a, b - mu_b
+    U, S, Vh = torch.linalg.svd(xb.T @ xa / len(a))
+    D = torch.ones(3, dtype=torch.float64)
+    D[2] = torch.sign(torch.linalg.det(U @ Vh))
+    R = U @ torch.diag(D) @ Vh
+    s = float((S * D).sum() / xa.pow(2).sum(1).mean())
+    return s, R, mu_b - s * R @ mu_a
+
+
+def camera_frame_points(cams: PinholeCamera, pivot: torch.Tensor) -> torch.Tensor:
+    """Each camera's centre and the points one pivot distance along its x, y and z axes
+    (4T, 3): where a camera is and where it looks, in world units."""
+    centres = camera_centers(cams).double()
+    axes = cams.extrinsics[:, :3, :3].double()  # rows: the camera's axes in world coordinates
+    reach = (centres - pivot.double()).norm(dim=-1)[:, None, None]
+    return torch.cat([centres[:, None], centres[:, None] + reach * axes], 1).reshape(-1, 3)
+
+
+def align_similarity(refined: PinholeCamera, calibrated: PinholeCamera, pivot: torch.Tensor) -> PinholeCamera:
+    """``refined`` (T) moved as one rigid rig, with a common scale, so that its centres and
+    axes (:func:`camera_frame_points`) best match ``calibrated``'s: a similarity S of the
+    world changes no image the refined cameras see of a density moved by S, so this only picks
+    the frame, the one in which the calibration's other cameras belong. World->camera
+    ``[R_i | t_i]`` becomes ``[R_i R^T | s t_i - R_i R^T t]`` (the 1/s of the camera frame
+    does not change a pinhole projection)."""
+    s, R, t = similarity(camera_frame_points(refined, pivot), camera_frame_points(calibrated, pivot))
+    E = refined.extrinsics.double()
+    Ri, ti = E[:, :3, :3], E[:, :3, 3]
+    E = E.clone()
+    E[:, :3, :3] = Ri @ R.T
+    E[:, :3, 3] = s * ti - (Ri @ R.T @ t[:, None]).squeeze(-1)
+    return make_cameras(K_of(refined), E.to(refined.extrinsics.dtype), refined.height, refined.width)
 
 
 def prior_sizes(cams: PinholeCamera, pivot: torch.Tensor, options: RefineOptions) -> torch.Tensor:
@@ -423,8 +477,10 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
             fits.append(CameraFit(volumes, grid, base, pivot, frame.images[train], index, valid, step))
         theta, info = camera_step(JointFit(fits), theta, sizes, basis, active, options.iterations)
         history.append({**info, "rays": int(sum(int(f.valid.sum()) for f in fits))})
-    refined = with_cameras(cameras, train, corrected_cameras(base, theta, pivot))
-    return Refinement(refined, theta.detach(), initial[0], history)
+    fitted = corrected_cameras(base, theta, pivot)
+    if options.gauge == "similarity":
+        fitted = align_similarity(fitted, base, pivot)
+    return Refinement(with_cameras(cameras, train, fitted), theta.detach(), initial[0], history)
 
 
 def correction_report(cameras: PinholeCamera, refined: PinholeCamera, grid: VoxelGrid) -> list[dict]:

@@ -35,7 +35,7 @@ VTI_FOLDER = "sequence_vti"
 METRICS_CSV = "sequence_metrics.csv"
 METRICS_PNG = "sequence_metrics.png"
 # metric names plotted first, when present (leaf names of the flattened metrics.json)
-_PLOT_FIRST = ("psnr", "ssim", "rel_l2", "iou", "iterations", "seconds", "objective")
+_PLOT_FIRST = ("psnr", "ssim", "detail", "rel_l2", "iou", "iterations", "seconds", "objective")
 _MAX_PANELS = 6
 
 

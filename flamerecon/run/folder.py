@@ -124,6 +124,8 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
         writer.scalars(0, {k: metrics["calibration"][k] for k in ("train_psnr_before", "train_psnr_after")},
                        "calibration")
     log_pictures(writer, setup, rec.fit.result.iterations, volume, held_imgs)  # the final renders, not again
+    writer.scalars(rec.fit.result.iterations, {f"heldout_{k}": mean_of(metrics["heldout"], k) for k in (
+        "detail", "detail_silhouette") if k in next(iter(metrics["heldout"].values()), {})}, "eval")
     writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
                                                   setup.grid.bbox_max), 0, "HWC")
     solver = options.solver

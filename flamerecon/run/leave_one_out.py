@@ -16,12 +16,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from flamerecon.device import resolve_device
-from flamerecon.evaluate.scores import (
-    render_scene_views,
-    score_views,
-    silhouette_union,
-    write_renders,
-)
+from flamerecon.evaluate.scores import render_scene_views, score_rendered, write_renders
 from flamerecon.fit.build import build
 from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import calibrated_scene, fit, warm_start
@@ -30,7 +25,8 @@ from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import Scene, SceneError, load_scene
 
 #: the per-view numbers averaged into the table's last row.
-AVERAGED = ("psnr", "ssim", "psnr_black", "psnr_silhouette", "psnr_black_silhouette")
+AVERAGED = ("psnr", "ssim", "detail", "detail_silhouette", "psnr_black", "psnr_silhouette",
+            "psnr_black_silhouette")
 
 
 def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None = None,
@@ -64,8 +60,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
         result, l1 = found.result, found.l1
         v = scene.views.index(name)
         image = render_scene_views(setup.volume(result.x), setup.grid, scene, [v], setup.step)
-        masks = silhouette_union(image, scene, [v], silhouette)
-        row = score_views(image, scene, [v], masks)[name]
+        row = score_rendered(image, scene, [v], silhouette)[name]
         row.update(iterations=result.iterations, seconds=result.seconds, l1=l1,
                    train=[scene.views[i] for i in setup.train])
         rows[name] = row
@@ -73,24 +68,36 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
         if progress is not None:
             progress(name, row)
     mean = {k: sum(r[k] for r in rows.values()) / len(rows) for k in AVERAGED}
-    record = {"views": rows, "mean": mean, "exclude": exclude,
+    record = {"views": rows, "mean": mean, "exclude": exclude, "protocol": protocol(options),
               "config": OmegaConf.to_container(cfg, resolve=False)}
     write_json_atomic(out_dir / "loo.json", record)
     return record
 
 
+def protocol(options) -> str:
+    """How a held-out camera is calibrated: ``strict`` (as the calibration file gives it) or
+    ``rig-calibrated`` (refined with the rig on frames that are not scored, ``calibration.rig``)."""
+    c = options.calibration
+    return "rig-calibrated" if c.refine != "none" and c.rig else "strict"
+
+
 def loo_table(record: dict) -> str:
     """The table printed at the end: one row per held-out view and the mean."""
-    head = f"  {'view':<12} {'PSNR':>7} {'SSIM':>7} {'black':>7} {'PSNR sil':>9} {'black sil':>9}"
+    head = (f"  {'view':<12} {'PSNR':>7} {'SSIM':>7} {'detail':>7} {'det sil':>7} {'black':>7} "
+            f"{'PSNR sil':>9} {'black sil':>9}")
     lines = [head, "  " + "-" * (len(head) - 2)]
 
     def line(name: str, r: dict) -> str:
-        vals = [r["psnr"], r["ssim"], r["psnr_black"], r["psnr_silhouette"], r["psnr_black_silhouette"]]
-        p, s, b, ps, bs = (x if math.isfinite(x) else float("nan") for x in vals)
-        return f"  {name:<12} {p:7.2f} {s:7.4f} {b:7.2f} {ps:9.2f} {bs:9.2f}"
+        vals = [r["psnr"], r["ssim"], r["detail"], r["detail_silhouette"], r["psnr_black"],
+                r["psnr_silhouette"], r["psnr_black_silhouette"]]
+        p, s, d, ds, b, ps, bs = (x if math.isfinite(x) else float("nan") for x in vals)
+        return f"  {name:<12} {p:7.2f} {s:7.4f} {d:7.3f} {ds:7.3f} {b:7.2f} {ps:9.2f} {bs:9.2f}"
 
     lines += [line(name, r) for name, r in record["views"].items()]
     lines += ["  " + "-" * (len(head) - 2), line("mean", record["mean"])]
     if record["exclude"]:
         lines.append(f"  (excluded from every fit: {', '.join(record['exclude'])})")
+    lines.append(f"  protocol: {record['protocol']} (each held-out camera "
+                 + ("refined with the rig on calibration.frames, none of them scored)" if record["protocol"] != "strict"
+                    else "as the calibration file gives it)"))
     return "\n".join(lines)

@@ -21,6 +21,11 @@ def summary_table(metrics: dict) -> str:
         rows.append(("  inside silhouettes [dB]", (
             f"{mean_of(metrics['heldout'], 'psnr_silhouette'):.2f}  "
             f"(black image: {mean_of(metrics['heldout'], 'psnr_black_silhouette'):.2f})")))
+    if held and "detail" in held[0]:
+        inside = (f", inside the captured silhouettes {mean_of(metrics['heldout'], 'detail_silhouette'):.3f}"
+                  if "detail_silhouette" in held[0] else "")
+        rows.append(("held-out detail", (f"{mean_of(metrics['heldout'], 'detail'):.3f}{inside}  "
+                                         "(fine-structure correlation, 1 = all of it)")))
     if held and "psnr_native" in held[0]:
         W, H = metrics["resolution"]["native"]
         rows += [
@@ -29,7 +34,9 @@ def summary_table(metrics: dict) -> str:
                 f"(black image: {mean_of(metrics['heldout'], 'psnr_black_native'):.2f})")),
             (f"  native {W}x{H} SSIM", f"{mean_of(metrics['heldout'], 'ssim_native'):.4f}"),
         ]
-    rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"))
+    rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"
+                 + (f"  (detail {mean_of(metrics['train'], 'detail'):.3f})" if "detail" in (
+                     next(iter(metrics["train"].values()), {})) else "")))
     c = metrics.get("calibration")
     if c:
         fitted = f", fitted to frames {c['frames']}" if c.get("frames") else ""
@@ -86,6 +93,7 @@ def flat_metrics(metrics: dict) -> dict[str, float]:
     out = {
         "heldout_psnr": mean_of(metrics["heldout"], "psnr"),
         "heldout_ssim": mean_of(metrics["heldout"], "ssim"),
+        "heldout_detail": mean_of(metrics["heldout"], "detail"),
         "train_psnr": mean_of(metrics["train"], "psnr"),
         "seconds": metrics["solver"]["seconds"],
     }

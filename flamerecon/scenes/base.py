@@ -82,9 +82,10 @@ class Scene:
         """(H, W)."""
         return int(self.images.shape[-2]), int(self.images.shape[-1])
 
-    def split(self, holdout) -> tuple[list[int], list[int]]:
+    def split(self, holdout, scored: bool = True) -> tuple[list[int], list[int]]:
         """Resolve ``holdout`` (view names or indices; None for the scene's default) into
-        (train indices, held-out indices)."""
+        (train indices, held-out indices); ``scored=False`` allows none held out (a density
+        fitted to every view, e.g. inside a camera fit)."""
         given = holdout is not None
         if holdout is None:
             holdout = list(self.default_holdout)
@@ -109,7 +110,7 @@ class Scene:
         train = [i for i in range(self.num_views) if i not in held]
         if not train:
             raise SceneError(f"holdout: {list(holdout)} holds out every view of scene '{self.name}'; keep at least one for training")
-        if not held:
+        if not held and scored:
             why = "holdout=[]" if given else f"holdout=null and scene '{self.name}' names none by default"
             raise SceneError(
                 f"holdout: no view is held out ({why}), so nothing would score the reconstruction; "
