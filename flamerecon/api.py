@@ -72,6 +72,10 @@ def load_scene(scene: str | Mapping = "synthetic", **options) -> Scene:
         node = {k: v for k, v in node.items() if known is None or k in known}
     given = set(options) | (set() if isinstance(scene, str) else set(node))
     node = {**node, **options}
+    frames = node.pop("frames", None)  # the scene node's run-level key (frames solved jointly)
+    if frames is not None:
+        raise wrong_value("scene.frames", frames, "None here: load_scene loads one frame (scene.frame); load "
+                          "each and solve them jointly with fr.reconstruct_frames")
     name = node.get("name")
     register_built_in()
     if name not in SCENE_LOADERS:

@@ -192,6 +192,7 @@ CASES = [
     ("load_scene", "range", lambda w: fr.load_scene("synthetic", width=-3), VALUE, "scene.width"),
     ("load_scene", "range", lambda w: fr.load_scene("synthetic", widht=48), VALUE, "scene.widht"),
     ("load_scene", "range", lambda w: fr.load_scene("synthtic"), VALUE, "scene.name"),
+    ("load_scene", "range", lambda w: fr.load_scene("synthetic", frames=[1, 2]), VALUE, "scene.frames"),
     ("load_run", "none", lambda w: fr.load_run(None), TYPE, "load_run.run_dir"),
     ("load_run", "type", lambda w: fr.load_run(42), TYPE, "load_run.run_dir"),
     ("load_run", "shape", lambda w: fr.load_run(["run", "other"]), TYPE, "load_run.run_dir"),
