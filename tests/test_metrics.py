@@ -128,10 +128,10 @@ def test_the_detail_band_keeps_its_size_in_native_pixels():
 
     from flamerecon.evaluate.scores import detail_sigma
 
-    def scene_with(config):  # detail_sigma reads the scene's loader options only
-        return SimpleNamespace(meta={"config": config})
+    def scene_of(height, width):  # detail_sigma reads the image size only
+        return SimpleNamespace(images=torch.zeros(1, 1, height, width))
 
-    assert detail_sigma(scene_with({"downscale": 4})) == 2.0
-    assert detail_sigma(scene_with({"downscale": 2})) == 4.0
-    assert detail_sigma(scene_with({"downscale": 1})) == 8.0
-    assert detail_sigma(scene_with({"name": "synthetic"})) == 2.0
+    assert detail_sigma(scene_of(480, 270)) == 2.0  # ScalarFlow at 1/4
+    assert detail_sigma(scene_of(960, 540)) == 4.0  # at 1/2: the same structures
+    assert detail_sigma(scene_of(1920, 1080)) == 8.0
+    assert detail_sigma(scene_of(240, 320)) == pytest.approx(2.0 * 240 / 270)  # the synthetic flame

@@ -34,6 +34,8 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> floa
 #: the detail band's Gaussian sigma in pixels at 1/4 of ScalarFlow's native 1080x1920 frame
 #: (270x480): structure finer than about 5 px there (20 native pixels) is "detail"
 DETAIL_SIGMA_PX = 2.0
+#: the shorter image side at which :data:`DETAIL_SIGMA_PX` applies; other sizes scale it
+DETAIL_REFERENCE_PX = 270
 
 
 def detail_band(image: torch.Tensor, sigma: float) -> torch.Tensor:

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from flamerecon.evaluate.metrics import (
+    DETAIL_REFERENCE_PX,
     DETAIL_SIGMA_PX,
     detail_correlation,
     psnr,
@@ -56,13 +57,11 @@ def silhouette_union(rendered: torch.Tensor, scene: Scene, views: list[int],
 
 
 def detail_sigma(scene: Scene) -> float:
-    """The detail band's sigma in pixels of ``scene``'s images: 2 px at 1/4 of the native
-    resolution, scaled with ``scene.downscale`` where the scene has one (4 px at 1/2, 8 px at
-    native), so that every resolution measures the same structures; 2 px otherwise."""
-    config = scene.meta.get("config") or {}
-    if "downscale" not in config:
-        return DETAIL_SIGMA_PX
-    return DETAIL_SIGMA_PX * 4.0 / downscale_factor(config)
+    """The detail band's sigma in pixels of ``scene``'s images (..., H, W): 2 px per 270 pixels
+    of the shorter side (:data:`~flamerecon.evaluate.metrics.DETAIL_SIGMA_PX` at ScalarFlow's 1/4
+    resolution, 480 x 270; 4 px at 1/2; 1.78 px on the 320 x 240 synthetic flame), so that every
+    resolution of a capture measures the same structures."""
+    return DETAIL_SIGMA_PX * min(scene.images.shape[-2:]) / DETAIL_REFERENCE_PX
 
 
 def masked_scores(rendered: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
