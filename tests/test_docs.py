@@ -67,16 +67,15 @@ def test_every_results_table_says_how_it_was_measured():
             assert ("Command" in block or "command not recorded" in block.lower()), heading
 
 
-def test_the_scores_are_defined_alike_in_the_readme_and_the_results():
-    readme, results = ((REPO / n).read_text() for n in ("README.md", "docs/results.md"))
-    terms = ("PSNR", "Black-image floor", "SSIM", "Detail correlation", "detail_silhouette",
-             "eval/heldout_detail", "held-out detail", "DETAIL_SIGMA_PX=2")
-    for text in (readme, results):
-        scores = section(text, "Scores")
-        for term in terms:
-            assert term in scores, term
-    bullet = re.compile(r"^- \*\*Detail correlation\*\*.*?(?=^- )", flags=re.MULTILINE | re.DOTALL)
-    assert bullet.search(section(readme, "Scores")).group() == bullet.search(section(results, "Scores")).group()
+def test_the_readme_defines_the_detail_correlation_with_the_codes_constants():
+    from flamerecon.evaluate.metrics import DETAIL_REFERENCE_PX, DETAIL_SIGMA_PX
+
+    scores = section((REPO / "README.md").read_text(), "Scores")
+    for term in ("PSNR", "Black-image floor", "SSIM", "Detail correlation", "detail_silhouette",
+                 "eval/heldout_detail", "held-out detail", f"DETAIL_SIGMA_PX={DETAIL_SIGMA_PX:g}",
+                 f"DETAIL_REFERENCE_PX={DETAIL_REFERENCE_PX}"):
+        assert term in scores, term
+    assert "../README.md#scores" in section((REPO / "docs" / "results.md").read_text(), "Scores")
 
 
 def test_the_calibration_options_are_documented():
