@@ -11,11 +11,11 @@ from __future__ import annotations
 import sys
 
 from flamerecon.outputs.sequence import assemble_sweep
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import run_script, script_parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("sweep_dir", help="multirun folder whose subfolders are per-frame runs")
     parser.add_argument("--no-vti", action="store_true", help="skip the .vti series and .pvd")
     parser.add_argument(

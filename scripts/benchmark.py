@@ -43,7 +43,7 @@ from flamerecon.geometry.hull import visual_hull
 from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.operators.projector import assemble, camera_rays
 from flamerecon.operators.sparse import CsrOperator
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import output_file, output_folder, run_script, script_parser
 from flamerecon.scenes import load_scene
 from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
 
@@ -590,7 +590,7 @@ def check_args(args) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("--grid", type=int, nargs="+", default=[64], help="grid sizes N (N^3)")
     parser.add_argument("--l1-rel", type=float, default=1e-3, help="lambda / max(A^T P)")
     parser.add_argument("--budget", type=float, default=60.0, help="seconds per method")
@@ -601,8 +601,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="at most this many float64 pqn iterations before the reference's polish")
     parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
-    parser.add_argument("--out", default="benchmark.json")
-    parser.add_argument("--dump", default=str(CACHE),
+    parser.add_argument("--out", type=output_file, default="benchmark.json", help="the report (JSON)")
+    parser.add_argument("--dump", type=output_folder, default=str(CACHE),
                         help="folder for grid<N>/ A.npz, problem.npz, reference.npz (the cache)")
     args = parser.parse_args(argv)
     return run_script(lambda: run(args), args.debug)

@@ -25,9 +25,17 @@ from pathlib import Path
 import flamerecon as fr
 from flamerecon.fit.reconstruct import mean_of
 from flamerecon.outputs.atomic import write_json_atomic
-from flamerecon.run.cli import ArgumentParser, compose_train, frame_list, run_script
+from flamerecon.run.cli import (
+    compose_train,
+    frame_list,
+    output_file,
+    output_folder,
+    run_script,
+    script_parser,
+)
 from flamerecon.run.leave_one_out import leave_one_out
 from flamerecon.run.pipeline import options_from_config
+from flamerecon.scenes import load_scene
 
 
 def method(text: str) -> tuple[str, list[str]]:
@@ -39,7 +47,7 @@ def method(text: str) -> tuple[str, list[str]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides shared by every method")
     parser.add_argument("--frames", type=frame_list, required=True, help="comma-separated scene.frame values")
     parser.add_argument("--method", type=method, action="append", required=True, metavar="NAME=OVERRIDES")
@@ -47,8 +55,11 @@ def main(argv: list[str] | None = None) -> int:
                         "(strict protocol: each held-out camera as the calibration file gives it)")
     parser.add_argument("--rig", action="store_true", help="with --loo, also the rig-calibrated leave-one-view-out "
                         "(calibration.rig=true: every camera refined on calibration.frames, never scored)")
-    parser.add_argument("--out", type=Path, help="JSON file of every figure")
+    parser.add_argument("--out", type=output_file, help="JSON file of every figure (with --loo, the folds' run "
+                        "folders go into the folder of its name without suffix; default outputs/compare)")
     args = parser.parse_args(argv)
+    folds = parser.checked("--out", output_folder, str(Path(args.out or "outputs/compare").with_suffix(""))) \
+        if args.loo else None
 
     columns = [  # (key, heading, format) of each figure of a row
         ("heldout", "held-out dB", "12.2f"), ("ssim", "SSIM", "7.4f"), ("detail", "detail", "7.3f"),
@@ -69,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             scene = None
             for name, extra in args.method:
                 cfg = compose_train([*args.overrides, *extra, f"scene.frame={frame}"])
-                scene = scene if scene is not None else fr.load_scene(cfg.scene)
+                scene = scene if scene is not None else load_scene(cfg.scene)
                 clock = time.perf_counter()
                 metrics = fr.score(fr.reconstruct(scene, options_from_config(cfg)))
                 held = metrics["heldout"]
@@ -79,14 +90,13 @@ def main(argv: list[str] | None = None) -> int:
                        "train": mean_of(metrics["train"], "psnr"), "train_detail": mean_of(metrics["train"], "detail"),
                        "black": mean_of(held, "psnr_black"), "seconds": time.perf_counter() - clock}
                 if args.loo:
-                    loo = leave_one_out(cfg, Path(args.out or "outputs/compare").with_suffix("") / f"{frame}-{name}",
+                    loo = leave_one_out(cfg, folds / f"{frame}-{name}",
                                         scene=scene)
                     row["loo"], row["loo_detail"] = loo["mean"]["psnr"], loo["mean"]["detail"]
                     row["loo_views"] = {v: r["psnr"] for v, r in loo["views"].items()}
                 if args.loo and args.rig:
                     rig_cfg = compose_train([*args.overrides, *extra, f"scene.frame={frame}", "calibration.rig=true"])
-                    rig = leave_one_out(rig_cfg, Path(args.out or "outputs/compare").with_suffix("")
-                                        / f"{frame}-{name}-rig", scene=scene)
+                    rig = leave_one_out(rig_cfg, folds / f"{frame}-{name}-rig", scene=scene)
                     row["rig"], row["rig_detail"] = rig["mean"]["psnr"], rig["mean"]["detail"]
                     row["rig_views"] = {v: r["psnr"] for v, r in rig["views"].items()}
                 rows.append(row)

@@ -27,7 +27,7 @@ from hydra import compose, initialize_config_dir
 
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.resources import config_dir
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import output_folder, run_script, script_parser
 from flamerecon.run.leave_one_out import leave_one_out
 from flamerecon.scenes import load_scene
 
@@ -83,7 +83,7 @@ def table(rows: list[dict], sweep_keys: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides shared by every setting")
     parser.add_argument("--sweep", type=key_values, action="append", default=[],
                         help="key=v1,v2,...: values to compare (repeat for a grid)")
@@ -93,9 +93,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="key=v1,v2,...: values (e.g. frames) scored after the choice, never used for it")
     parser.add_argument("--exclude", default="", help="comma-separated views never fitted")
     parser.add_argument("--test", action="store_true", help="also score the excluded views")
-    parser.add_argument("--out", type=Path, help="output folder (default outputs/cv/<date>/<time>)")
+    parser.add_argument("--out", type=output_folder, help="output folder (default outputs/cv/<date>/<time>)",
+                        default=str(Path("outputs/cv") / time.strftime("%Y-%m-%d") / time.strftime("%H-%M-%S")))
     args = parser.parse_args(argv)
-    out = args.out or Path("outputs/cv") / time.strftime("%Y-%m-%d") / time.strftime("%H-%M-%S")
+    out = args.out
     exclude = [v for v in args.exclude.split(",") if v]
     sweep_keys = [k for k, _ in args.sweep]
     settings = [[f"{k}={v}" for k, v in zip(sweep_keys, combo)]

@@ -12,13 +12,16 @@ products of A, seconds, final objective and relative duality gap, with the load 
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 import time
 
 import flamerecon as fr
 from flamerecon.fit.build import make_problem
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.resources import config_dir
+from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
+from flamerecon.run.config import options_from_config
 
 
 class Counted:
@@ -36,23 +39,39 @@ class Counted:
         return self.A.adjoint(y)
 
 
-def parse(entry: str) -> tuple[str, dict]:
-    """``NAME[:key=value,...]`` -> (name, options with numbers parsed)."""
+def solver_entry(entry: str) -> tuple[str, str, dict]:
+    """argparse type: ``NAME[:key=value,...]`` -> (entry, name, options with numbers parsed)."""
     name, _, rest = entry.partition(":")
     options = {}
     for item in filter(None, rest.split(",")):
-        key, value = item.split("=")
-        options[key] = int(value) if value.lstrip("-").isdigit() else float(value)
-    return name, options
+        key, sep, value = item.partition("=")
+        try:
+            options[key] = int(value) if value.lstrip("-").isdigit() else float(value)
+        except ValueError:
+            sep = ""
+        if not sep or not key:
+            raise argparse.ArgumentTypeError(f"'{entry}': '{item}' is not key=number; give NAME[:key=value,...]")
+    if not (config_dir() / "solver" / f"{name}.yaml").is_file():
+        raise argparse.ArgumentTypeError(f"'{entry}': unknown solver '{name}'; one of conf/solver/: "
+                                         f"{', '.join(sorted(p.stem for p in (config_dir() / 'solver').glob('*.yaml')))}")
+    return entry, name, options
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--solvers", nargs="+", default=["fista_smooth", "pqn_smooth:max_iters=100"])
-    parser.add_argument("--frame", type=int, default=0)
-    parser.add_argument("--repeats", type=int, default=2)
+    parser = script_parser(__doc__, __file__)
+    parser.add_argument("--solvers", nargs="+", type=solver_entry,
+                        default=[solver_entry("fista_smooth"), solver_entry("pqn_smooth:max_iters=100")],
+                        metavar="NAME[:key=value,...]", help="the solvers, each with its options")
+    parser.add_argument("--frame", type=at_least(0), default=0, help="the synthetic flame's frame")
+    parser.add_argument("--repeats", type=at_least(1), default=2, help="solves of each solver")
     args = parser.parse_args(argv)
     return run_script(lambda: run(args), args.debug)
+
+
+def solver_of(name: str, overrides: dict):
+    """The options of ``solver=NAME`` (``conf/solver/<name>.yaml``) with ``overrides`` on top."""
+    cfg = compose_train([f"solver={name}", *(f"solver.{k}={v}" for k, v in overrides.items())], "synthetic")
+    return options_from_config(cfg).solver
 
 
 def run(args) -> None:
@@ -61,9 +80,8 @@ def run(args) -> None:
     setup = fr.build(scene, options)
     print(f"frame {args.frame}: {setup.operator.shape[0]} rays x {setup.operator.shape[1]} voxels")
     for _ in range(args.repeats):
-        for entry in args.solvers:
-            name, overrides = parse(entry)
-            solver_options = options.solver.with_values(name=name, **overrides)
+        for entry, name, overrides in args.solvers:
+            solver_options = solver_of(name, overrides)
             problem, solver, _ = make_problem(solver_options, setup)
             problem.A = counted = Counted(setup.operator)  # a fresh one: no cached norm
             start = time.perf_counter()

@@ -13,12 +13,12 @@ import sys
 
 from flamerecon.outputs.export import ALIASES, FORMATS, export_run
 from flamerecon.outputs.mesh import DEFAULT_ISO
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import run_script, script_parser
 from flamerecon.run.lock import run_lock
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("run_dir", help="run folder holding density.npz")
     parser.add_argument(
         "--format", dest="formats", action="append", choices=[*FORMATS, *ALIASES],

@@ -29,8 +29,9 @@ from flamerecon.fit.refine_cameras import (
     prior_sizes,
 )
 from flamerecon.geometry.cameras import camera_subset
-from flamerecon.run.cli import ArgumentParser, compose_train, frame_list, run_script
+from flamerecon.run.cli import compose_train, frame_list, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
+from flamerecon.scenes import load_scene
 
 BLURS = (0.5, 1.0, 1.5, 2.0, 3.0)
 
@@ -61,7 +62,7 @@ def refit_pose(rec, view: int, iterations: int = 10) -> torch.Tensor:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
     parser.add_argument("--frames", type=frame_list, required=True, help="comma-separated scene.frame values")
     args = parser.parse_args(argv)
@@ -72,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         for frame in args.frames:
             cfg = compose_train([*args.overrides, f"scene.frame={frame}"])
             options = options_from_config(cfg)
-            scene = fr.load_scene(cfg.scene)
+            scene = load_scene(cfg.scene)
             rec = fr.reconstruct(scene, options)
             train = [scene.views[v] for v in rec.setup.train]
             for v in rec.setup.holdout:

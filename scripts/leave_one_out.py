@@ -20,7 +20,7 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 
 from flamerecon.resources import config_dir
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import output_folder, run_script, script_parser
 from flamerecon.run.leave_one_out import leave_one_out, loo_table
 
 
@@ -29,15 +29,16 @@ def names(value: str | None) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides, key=value")
     parser.add_argument("--views", help="comma-separated views to hold out in turn (default: all)")
     parser.add_argument("--exclude", help="comma-separated views left out of every fit")
     parser.add_argument("--rig", action="store_true",
                         help="the rig-calibrated protocol (calibration.rig=true) instead of the strict one")
-    parser.add_argument("--out", type=Path, help="output folder (default outputs/loo/<date>/<time>)")
+    parser.add_argument("--out", type=output_folder, help="output folder (default outputs/loo/<date>/<time>)",
+                        default=str(Path("outputs/loo") / time.strftime("%Y-%m-%d") / time.strftime("%H-%M-%S")))
     args = parser.parse_args(argv)
-    out = args.out or Path("outputs/loo") / time.strftime("%Y-%m-%d") / time.strftime("%H-%M-%S")
+    out = args.out
 
     def run() -> None:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):

@@ -40,7 +40,7 @@ from benchmark import CACHE, objectives
 
 from flamerecon.errors import ConfigError
 from flamerecon.operators import CsrOperator, norm_sq
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import run_script, script_parser
 from flamerecon.solvers import Problem, make_solver
 
 TARGETS = (1e-4, 1e-6)
@@ -193,7 +193,7 @@ def extrapolate(last: list[torch.Tensor]) -> torch.Tensor:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("--grid", type=int, default=64)
     parser.add_argument("--variants", nargs="+",
                         default=["lipschitz", "sqs", "blend:0.1", "blend:0.3", "sqs/1.5", "sqs/2"])

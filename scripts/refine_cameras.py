@@ -17,20 +17,24 @@ import json
 import os
 import sys
 import time
-from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from hydra import compose, initialize_config_dir
-from hydra.errors import HydraException
 from omegaconf import OmegaConf
 
-from flamerecon.errors import FlameReconError
 from flamerecon.evaluate.scores import score
+from flamerecon.run.cli import compose_train, frame_list, output_file, run_script, script_parser
 from flamerecon.run.pipeline import calibrated_scene, mean_of, prepare, resolve_device, solve
-from flamerecon.run.runner import script_error
 from flamerecon.scenes import load_scene
+
+MODES = ("pose", "pose+intrinsics")
+
+
+def modes(text: str) -> list[str]:
+    """argparse type: 'pose,pose+intrinsics' -> ['pose', 'pose+intrinsics'] (at least one)."""
+    chosen = [m for m in text.split(",") if m]
+    wrong = [m for m in chosen if m not in MODES]
+    if wrong or not chosen:
+        raise argparse.ArgumentTypeError(f"got '{text}'; give comma-separated modes out of {', '.join(MODES)}")
+    return chosen
 
 
 def measure(cfg, mode: str) -> dict:
@@ -54,37 +58,35 @@ def measure(cfg, mode: str) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides, key=value")
-    parser.add_argument("--frames", default="", help="comma-separated scene.frame values (default: the config's)")
-    parser.add_argument("--modes", default="pose,pose+intrinsics", help="refinement modes besides none")
-    parser.add_argument("--out", type=Path, help="append the rows to this JSON-lines file")
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    parser.add_argument("--frames", type=frame_list, help="comma-separated scene.frame values (default: the config's)")
+    parser.add_argument("--modes", type=modes, default=list(MODES), help="refinement modes besides none")
+    parser.add_argument("--out", type=output_file, help="append the rows to this JSON-lines file")
     args = parser.parse_args(argv)
+    return run_script(lambda: run(args), args.debug)
+
+
+def run(args: argparse.Namespace) -> None:
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs", flush=True)
-    try:
-        with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-            base = compose(config_name="train", overrides=args.overrides)
-        frames = [int(f) for f in args.frames.split(",") if f] or [int(base.scene.get("frame", 0))]
-        print(f"  {'frame':>5} {'mode':<16} {'held-out':>9} {'training':>9} {'black':>7} "
-              f"{'max box px':>10} {'seconds':>8}")
-        for frame in frames:
-            cfg = OmegaConf.merge(base, {"scene": {"frame": frame}})
-            for mode in [m for m in args.modes.split(",") if m]:
-                row = measure(cfg, mode)
-                if "none_heldout_psnr" in row and mode == args.modes.split(",")[0]:
-                    print(f"  {frame:>5} {'none':<16} {row['none_heldout_psnr']:9.2f} {row['none_train_psnr']:9.2f} "
-                          f"{row['heldout_black']:7.2f} {0.0:10.2f}", flush=True)
-                shift = max((c["box_px"] for c in row.get("cameras", {}).values()), default=0.0)
-                print(f"  {frame:>5} {mode:<16} {row['heldout_psnr']:9.2f} {row['train_psnr']:9.2f} "
-                      f"{row['heldout_black']:7.2f} {shift:10.2f} {row['seconds']:8.1f}", flush=True)
-                if args.out:
-                    with args.out.open("a") as f:
-                        f.write(json.dumps(row) + "\n")
-    except (FlameReconError, FileNotFoundError, HydraException) as err:
-        return script_error(err, args.debug)
+    base = compose_train(args.overrides, default_scene=None)
+    frames = args.frames or [int(base.scene.get("frame", 0))]
+    print(f"  {'frame':>5} {'mode':<16} {'held-out':>9} {'training':>9} {'black':>7} "
+          f"{'max box px':>10} {'seconds':>8}")
+    for frame in frames:
+        cfg = OmegaConf.merge(base, {"scene": {"frame": frame}})
+        for mode in args.modes:
+            row = measure(cfg, mode)
+            if "none_heldout_psnr" in row and mode == args.modes[0]:
+                print(f"  {frame:>5} {'none':<16} {row['none_heldout_psnr']:9.2f} {row['none_train_psnr']:9.2f} "
+                      f"{row['heldout_black']:7.2f} {0.0:10.2f}", flush=True)
+            shift = max((c["box_px"] for c in row.get("cameras", {}).values()), default=0.0)
+            print(f"  {frame:>5} {mode:<16} {row['heldout_psnr']:9.2f} {row['train_psnr']:9.2f} "
+                  f"{row['heldout_black']:7.2f} {shift:10.2f} {row['seconds']:8.1f}", flush=True)
+            if args.out:
+                with args.out.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
     print(f"load average {os.getloadavg()[0]:.1f} at the end", flush=True)
-    return 0
 
 
 if __name__ == "__main__":

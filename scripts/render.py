@@ -43,7 +43,7 @@ from flamerecon.outputs.figures import (
     write_png,
 )
 from flamerecon.outputs.names import file_stem
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import output_folder, run_script, script_parser
 from flamerecon.scenes.calibration import check_intrinsics, check_rigid
 
 UP = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
@@ -103,7 +103,7 @@ def parse_orbit(spec: str) -> tuple[float, float, float | None]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("run_dir", type=Path, help="run folder holding density.npz")
     parser.add_argument("--camera", action="append", default=[],
                         help="orbit:ANGLE,ELEV[,DIST] or a cameras.json file (repeatable)")
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="value shown white (default: brightest pixel; 1 matches captured)")
     parser.add_argument("--fps", type=float, default=24.0)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda")
-    parser.add_argument("--out", type=Path, default=None, help="default: RUN_DIR/renders")
+    parser.add_argument("--out", type=output_folder, default=None, help="default: RUN_DIR/renders")
     args = parser.parse_args(argv)
 
     def run() -> None:

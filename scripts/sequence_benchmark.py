@@ -17,17 +17,22 @@ import numpy as np
 
 import flamerecon as fr
 from flamerecon.fit.reconstruct import mean_of
-from flamerecon.run.cli import ArgumentParser, compose_train, run_script
+from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
+from flamerecon.scenes import load_scene
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, nargs=2, default=[0, 74], metavar=("FIRST", "LAST"))
-    parser.add_argument("--every", type=int, default=1, help="take every N-th frame")
+    parser = script_parser(__doc__, __file__)
+    parser.add_argument("--frames", type=at_least(0), nargs=2, default=[0, 74], metavar=("FIRST", "LAST"),
+                        help="the first and last frame, FIRST <= LAST (default: 0 74)")
+    parser.add_argument("--every", type=at_least(1), default=1, help="take every N-th frame")
     parser.add_argument("--warm", action="store_true", help="warm-start each frame from the previous one")
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
     args = parser.parse_args(argv)
+    if args.frames[0] > args.frames[1]:
+        parser.error(f"argument --frames: FIRST {args.frames[0]} is after LAST {args.frames[1]}; "
+                     "give FIRST <= LAST")
 
     def run() -> None:
         base = compose_train(args.overrides)
@@ -41,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         previous, rows, started = None, [], time.perf_counter()
         for t in frames:
             clock = time.perf_counter()
-            scene = fr.load_scene({**base.scene, "frame": t})
+            scene = load_scene({**base.scene, "frame": t})
             loaded = time.perf_counter()
             rec = fr.reconstruct(scene, options, init=previous if args.warm else None)
             solved = time.perf_counter()

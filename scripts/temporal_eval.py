@@ -21,11 +21,10 @@ import argparse
 import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
-from hydra import compose, initialize_config_dir
 
+from flamerecon.errors import ConfigError
 from flamerecon.evaluate.scores import score
 from flamerecon.fit.joint_frames import (
     JointFramesOptions,
@@ -33,12 +32,23 @@ from flamerecon.fit.joint_frames import (
     prepare_frames,
     solve_frames,
 )
+from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
 from flamerecon.run.config import options_from_config
 from flamerecon.run.joint_frames import frame_config, frame_range
 from flamerecon.run.pipeline import resolve_device, solve
 from flamerecon.scenes import load_scene
 
-REPO = Path(__file__).resolve().parents[1]
+
+def weights(text: str) -> tuple[float, float, str]:
+    """argparse type: 'L2:TV[:shift]' -> (l2, tv, temporal.motion), weights >= 0."""
+    parts = text.split(":")
+    try:
+        l2, tv = float(parts[0]), float(parts[1])
+    except (ValueError, IndexError):
+        l2 = tv = -1.0
+    if len(parts) > 3 or l2 < 0 or tv < 0 or parts[2:] not in ([], ["shift"]):
+        raise argparse.ArgumentTypeError(f"got '{text}'; give L2:TV or L2:TV:shift, weights >= 0")
+    return l2, tv, "shift" if len(parts) == 3 else "none"
 
 
 def scores(setup, volume) -> tuple[dict[str, float], float]:
@@ -66,20 +76,23 @@ def absorbing_scores(setup, problem, volume, iters: int, fit_sigma: bool = True
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="config overrides; must set scene.frames")
-    parser.add_argument("--weights", nargs="+", default=["0:0"], metavar="L2:TV[:shift]")
+    parser.add_argument("--weights", nargs="+", type=weights, default=[weights("0:0")], metavar="L2:TV[:shift]",
+                        help="temporal.l2 and temporal.tv of a joint solve, ':shift' for temporal.motion=shift")
     parser.add_argument("--no-baseline", action="store_true", help="skip the per-frame solves")
-    parser.add_argument("--absorption", type=int, default=0, metavar="ITERS",
+    parser.add_argument("--absorption", type=at_least(0), default=0, metavar="ITERS",
                         help="also refit the first method's result with absorption, ITERS Adam steps")
     parser.add_argument("--control", action="store_true",
                         help="with --absorption, also the same refit with sigma held at 0")
     args = parser.parse_args(argv)
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=args.overrides)
+    return run_script(lambda: run(args), args.debug)
+
+
+def run(args: argparse.Namespace) -> None:
+    cfg = compose_train(args.overrides, default_scene=None)
     if cfg.scene.get("frames") is None:
-        print("temporal_eval: set scene.frames=[first,last]", file=sys.stderr)
-        return 2
+        raise ConfigError("scene.frames: not set; give the frames to solve jointly, e.g. scene.frames=[30,34]")
     if cfg.get("threads"):
         import torch
 
@@ -101,9 +114,7 @@ def main(argv: list[str] | None = None) -> int:
             volumes.append(setup.volume(result.x))
             seconds.append(result.seconds)
         methods.append((f"per-frame {cfg.solver.name}", list(zip(volumes, seconds))))
-    for spec in args.weights:
-        parts = spec.split(":")
-        l2, tv, motion = float(parts[0]), float(parts[1]), parts[2] if len(parts) > 2 else "none"
+    for l2, tv, motion in args.weights:
         joint = JointFramesOptions(l2=l2, tv=tv, tol=float(cfg.temporal.tol))
         opts = joint_solve_options(options, joint, prepared)
         result, shifts = solve_frames(prepared, opts, motion, int(cfg.temporal.max_shift))
@@ -135,7 +146,6 @@ def main(argv: list[str] | None = None) -> int:
         held = " ".join(f"{np.mean([r[2][v] for r in sel]):9.2f}" for v in views)
         print(f"{name:<52} {'mean':>5} {held} {np.mean([r[3] for r in sel]):7.2f}")
     print(f"load {os.getloadavg()[0]:.2f} at the end")
-    return 0
 
 
 if __name__ == "__main__":

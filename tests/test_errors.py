@@ -46,10 +46,10 @@ CASES = {
     "fewer view names than images": (defective("missing_view_name"), SceneError,
                                      r"5 images, 4 view names and 5 cameras"),
     "empty silhouettes": (["silhouette.threshold=1.5"], HullError,
-                          (r"silhouette.threshold=1.5: no training view has a pixel above it.*try "
-                          r"silhouette.threshold=0\.\d+")),
+                          (r"every training view's silhouette is empty: silhouette.threshold=1.5 is above every "
+                          r"pixel.*try silhouette.threshold=0\.\d+")),
     "one empty silhouette": (defective("dark_view"), HullError,
-                             (r"silhouette of view\(s\) \['cam02'\] is empty.*view 'cam02' is black: check its image "
+                             (r"silhouette of view\(s\) \['cam02'\] is empty.*view 'cam02' is black; check its image "
                              r"file or hold those views out")),
     "empty visual hull": ([*defective("disjoint_silhouette"), "grid.bbox=[[-0.3,0.2,-0.3],[0.3,1,0.3]]"],
                           HullError,

@@ -1,14 +1,22 @@
-"""Silhouettes (Otsu, fixed threshold, background subtraction, clean-up, margin) and the box
-around the silhouette cones."""
+"""Silhouettes (Otsu, fixed threshold, background subtraction, clean-up, margin), the box
+around the silhouette cones, and what an empty one is blamed on."""
 
 from __future__ import annotations
+
+import dataclasses
+import re
 
 import numpy as np
 import pytest
 import torch
 
+from flamerecon.errors import HullError
+from flamerecon.fit.checks import check_silhouettes
+from flamerecon.fit.options import SilhouetteOptions
 from flamerecon.geometry.cameras import make_cameras, project_points
+from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import estimate_bbox, otsu_threshold, silhouettes
+from tests.helpers import tiny_synthetic
 from tests.helpers.views import ring_cameras
 
 H, W = 48, 64
@@ -100,3 +108,65 @@ def test_estimate_box_errors():
     masks[0, 10:20, 10:20] = True
     with pytest.raises(ValueError, match=r"silhouettes of views \[1\] are empty"):
         estimate_bbox(cams, masks)
+
+
+# ---------------------------------------------------------------------------------------------
+# an empty silhouette is blamed on the setting that emptied it, with a value that gives one
+
+def _specks(scene, size: int):
+    """View 2 replaced by squares of ``size`` x ``size`` pixels at 0.8, far apart."""
+    image = torch.zeros_like(scene.images[2])
+    for y, x in ((5, 5), (20, 30), (28, 10)):
+        image[:, y:y + size, x:x + size] = 0.8
+    return {"images": torch.cat([scene.images[:2], image[None], scene.images[3:]])}
+
+
+def _black_level(scene, level: float = 0.9):
+    """Every view recorded as 0.1 + 0.5 x its image, linearized with ``scene.black_level``."""
+    recorded = 0.1 + 0.5 * scene.images
+    return {"recorded_images": recorded, "images": linearize(recorded, 1.0, level),
+            "response": {"gamma": 1.0, "black_level": level}}
+
+
+def _dark_view(scene):
+    return {"images": torch.cat([scene.images[:2], torch.zeros_like(scene.images[2:3]), scene.images[3:]])}
+
+
+EMPTY = {  # case: (scene change, silhouette options, the message after the scene's name)
+    "threshold above every pixel": (lambda s: {}, {"threshold": 1.5},
+                                    (r"every training view's silhouette is empty: silhouette.threshold=1.5 is above "
+                                    r"every pixel of view 'cam00' \(brightest pixel 0\.\d+\); try "
+                                    r"silhouette.threshold=0\.\d+$")),
+    "otsu's level above every pixel": (lambda s: {}, {"method": "otsu", "threshold": 1.5},
+                                       (r"the level silhouette.method=otsu chose .*try silhouette.threshold=0\.\d+ "
+                                       r"and silhouette.method=threshold")),
+    "single pixels dropped as specks": (lambda s: _specks(s, 1), {},
+                                        (r"\['cam02'\] is empty.*silhouette.speck_px=1 drops every blob of view "
+                                        r"'cam02' .* \(blobs smaller than 3x3 pixels\); try silhouette.speck_px=0 "
+                                        r"or hold those views out")),
+    "4x4 blobs dropped by speck_px=3": (lambda s: _specks(s, 4), {"speck_px": 3},
+                                        r"silhouette.speck_px=3 drops every blob .*7x7.*; try silhouette.speck_px=1 "),
+    "black level above every pixel": (_black_level, {},
+                                      (r"scene.black_level=0.9 leaves no pixel of view 'cam00' above the threshold "
+                                      r"\(brightest recorded value 0\.\d+\); try scene.black_level=0.45$")),
+    "a black image file": (_dark_view, {}, (r"\['cam02'\] is empty.*: view 'cam02' is black; check its image file "
+                                           r"or hold those views out \(holdout=\[...cam02\]\)$")),
+}
+
+
+@pytest.mark.parametrize("case", list(EMPTY))
+def test_an_empty_silhouette_names_the_setting_that_emptied_it(case):
+    change, options, message = EMPTY[case]
+    scene = tiny_synthetic()
+    scene = dataclasses.replace(scene, **change(scene))
+    options = SilhouetteOptions(**options)
+    masks = silhouettes(scene.images, **options.as_dict())
+    with pytest.raises(HullError, match=message) as info:
+        check_silhouettes(scene, masks, [0, 1, 2, 3], options)
+    key, value = (re.search(r"try (\S+)=(\S+)", str(info.value)) or re.match("()()", "")).groups()
+    if key.startswith("silhouette."):  # the value suggested gives the view a silhouette
+        view = int(re.search(r"view '(cam\d+)'", str(info.value)).group(1)[3:])
+        name = key.split(".")[1]
+        fixed = dataclasses.replace(options, method="threshold",
+                                    **{name: int(value) if name == "speck_px" else float(value)})
+        assert silhouettes(scene.images[view:view + 1], **fixed.as_dict()).any()

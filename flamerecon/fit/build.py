@@ -115,7 +115,7 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
     images = scene.images.to(device)
     masks = scene_masks(scene, images, options)
     threshold = float(options.silhouette.threshold or 0.0)
-    check_silhouettes(scene, masks, train, threshold)
+    check_silhouettes(scene, masks, train, options.silhouette)
     cams = cameras_to(camera_subset(scene.cameras, train), device)
     margin = int(options.hull.margin_voxels)
     hull = visual_hull(grid, cams, masks[train], margin)

@@ -14,9 +14,12 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.errors import ConfigError, HullError, MemoryBudgetError
 from flamerecon.fit.memory import available_bytes, format_bytes
+from flamerecon.fit.options import SilhouetteOptions
 from flamerecon.geometry.cameras import K_of, pixel_rays
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.hull import carve_counts
+from flamerecon.geometry.photometry import linearize
+from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
 from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
 from flamerecon.scenes import Scene, SceneError
 
@@ -157,27 +160,54 @@ def choose_backend(
     )
 
 
-def check_silhouettes(scene: Scene, masks: torch.Tensor, train: list[int], threshold: float) -> None:
+def check_silhouettes(scene: Scene, masks: torch.Tensor, train: list[int], options: SilhouetteOptions) -> None:
     """Refuse training views whose silhouette ``masks`` (B, H, W) is empty: each would carve
-    away the whole box. Suggests a threshold below the view's brightest pixel."""
-    where = _where(scene)
+    away the whole box. Names the setting that emptied the first one (:func:`why_empty`)."""
     empty = [v for v in train if not bool(masks[v].any())]
     if not empty:
         return
-    brightest = {v: float(scene.images[v].amax()) for v in empty}
     names = [scene.views[v] for v in empty]
-    hint = 0.5 * min(brightest.values())
-    what = (
-        "no training view has a pixel above it" if len(empty) == len(train)
-        else f"the silhouette of view(s) {names} is empty, so they would carve away the whole box"
-    )
-    fix = (f"try silhouette.threshold={hint:.3g}" if hint > 0
-           else f"view '{names[0]}' is black: check its image file")
-    raise HullError(
-        f"{where}: silhouette.threshold={threshold:g}: {what} (brightest pixel "
-        f"{max(brightest.values()):.3g}); {fix}"
-        + ("" if len(empty) == len(train) else f" or hold those views out (holdout=[...{names[0]}])")
-    )
+    every = len(empty) == len(train)
+    what = ("every training view's silhouette is empty" if every
+            else f"the silhouette of view(s) {names} is empty, so they would carve away the whole box")
+    cause, fix = why_empty(scene, empty[0], options)
+    raise HullError(f"{_where(scene)}: {what}: {cause}; {fix}"
+                    + ("" if every else f" or hold those views out (holdout=[...{names[0]}])"))
+
+
+def why_empty(scene: Scene, v: int, options: SilhouetteOptions) -> tuple[str, str]:
+    """(cause, what to try) for view ``v``'s empty silhouette: the setting without which it
+    would not be empty (speck removal, the black level, the threshold), found by computing the
+    silhouette again with it changed; each suggested value is one that gives a silhouette."""
+    name, kept = scene.views[v], options.as_dict()
+
+    def nonempty(image: torch.Tensor, **changed) -> bool:
+        return bool(silhouettes(image, **{**kept, **changed}).any())
+
+    image, speck = scene.images[v:v + 1].cpu(), int(options.speck_px)
+    if scene.masks is not None:
+        return f"the scene's own mask of view '{name}' is empty", "check its mask file"
+    if speck > 0 and nonempty(image, speck_px=0):
+        works = next(k for k in range(speck - 1, -1, -1) if nonempty(image, speck_px=k))
+        cause = (f"silhouette.speck_px={speck} drops every blob of view '{name}' above the threshold as a "
+                 f"speck (blobs smaller than {2 * speck + 1}x{2 * speck + 1} pixels)")
+        return cause, f"try silhouette.speck_px={works}"
+    black = float((scene.response or {}).get("black_level") or 0.0)
+    if black > 0 and scene.recorded_images is not None:
+        recorded = scene.recorded_images[v:v + 1].cpu()
+        for lower in (0.5 * black, 0.25 * black, 0.0):
+            if nonempty(linearize(recorded, scene.response["gamma"], lower)):
+                cause = (f"scene.black_level={black:g} leaves no pixel of view '{name}' above the threshold "
+                         f"(brightest recorded value {float(recorded.amax()):.3g})")
+                return cause, f"try scene.black_level={lower:.3g}"
+    peak = float(silhouette_signal(image, blur_px=float(options.blur_px)).max())
+    if peak <= 0:
+        return f"view '{name}' is black", "check its image file"
+    level = f"silhouette.threshold={options.threshold:g}" if options.method == "threshold" else \
+        f"the level silhouette.method=otsu chose (silhouette.threshold={options.threshold})"
+    return (f"{level} is above every pixel of view '{name}' (brightest pixel {peak:.3g})",
+            f"try silhouette.threshold={0.5 * peak:.3g}" + (" and silhouette.method=threshold"
+                                                               if options.method != "threshold" else ""))
 
 
 def explain_empty_hull(

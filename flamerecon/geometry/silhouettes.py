@@ -49,6 +49,27 @@ def _drop_specks(mask: np.ndarray, min_area: int) -> np.ndarray:
     return keep[labels].astype(mask.dtype)
 
 
+def silhouette_signal(images: torch.Tensor, background: torch.Tensor | None = None,
+                      blur_px: float = 0.0) -> np.ndarray:
+    """What :func:`silhouettes` thresholds: per view (B, H, W) the brightest channel of the
+    image (minus ``background``, clamped at 0), denoised by a Gaussian of ``blur_px``."""
+    signal = images.detach().float()
+    if background is not None:
+        bg = background.detach().float().to(signal.device)
+        if bg.dim() == 3:
+            bg = bg[None]
+        if bg.shape[-3:] != signal.shape[-3:] or bg.shape[0] not in (1, signal.shape[0]):
+            raise ValueError(
+                f"silhouette.background: shape {tuple(bg.shape)} does not match the images "
+                f"{tuple(signal.shape)}"
+            )
+        signal = (signal - bg).clamp_min(0.0)
+    signal = signal.amax(dim=1).cpu().numpy()
+    if blur_px > 0:
+        signal = np.stack([cv2.GaussianBlur(view, (0, 0), sigmaX=float(blur_px)) for view in signal])
+    return signal
+
+
 def silhouettes(
     images: torch.Tensor,
     method: str = "threshold",
@@ -80,22 +101,9 @@ def silhouettes(
         raise ValueError(f"silhouette.method: '{method}' is not one of {SILHOUETTE_METHODS}")
     if method == "threshold" and threshold is None:
         raise ValueError("silhouette.threshold: method 'threshold' needs a threshold in [0, 1]")
-    signal = images.detach().float()
-    if background is not None:
-        bg = background.detach().float().to(signal.device)
-        if bg.dim() == 3:
-            bg = bg[None]
-        if bg.shape[-3:] != signal.shape[-3:] or bg.shape[0] not in (1, signal.shape[0]):
-            raise ValueError(
-                f"silhouette.background: shape {tuple(bg.shape)} does not match the images "
-                f"{tuple(signal.shape)}"
-            )
-        signal = (signal - bg).clamp_min(0.0)
-    signal = signal.amax(dim=1).cpu().numpy()
+    signal = silhouette_signal(images, background, blur_px)
     masks = []
     for view in signal:
-        if blur_px > 0:
-            view = cv2.GaussianBlur(view, (0, 0), sigmaX=float(blur_px))
         if method == "otsu":
             level = otsu_threshold(view)
             if threshold is not None:

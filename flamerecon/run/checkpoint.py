@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import torch
@@ -40,11 +41,21 @@ def load_checkpoint(run_dir: str | Path) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises many types for a damaged archive
-        raise ResumeError(f"{path}: unreadable checkpoint ({type(err).__name__}: {err})") from err
+        raise ResumeError(f"{path}: unreadable checkpoint ({type(err).__name__}: {torch_reason(err)})") from err
     for key in ("state", "meta"):
         if key not in payload:
             raise ResumeError(f"{path}: field '{key}' is missing; not a flamerecon checkpoint")
     return payload
+
+
+def torch_reason(err: Exception) -> str:
+    """What ``torch.load`` found wrong, without its advice to load with ``weights_only=False``
+    (which would run whatever code the file holds)."""
+    text = str(err)
+    if "weights_only" in text:
+        found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+        return f"it holds {'a ' + found.group(1) if found else 'Python objects'}, not only tensors; not a flamerecon checkpoint"
+    return " ".join(text.split())
 
 
 def _to_cpu(obj):

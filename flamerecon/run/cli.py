@@ -3,15 +3,20 @@
 Every script ends like ``train.py``: bad input is one line ``flamerecon: error: <file or
 field>: <what>; <what to try>`` on stderr and exit status 2 (``--debug`` shows the traceback),
 a diverged solve 3, Ctrl-C 130. A bad command line (argparse) gets the same prefix and status.
+``--help`` prints the script's module docstring whole, as written (:func:`script_parser`).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
 
-from flamerecon.errors import FlameReconError, errno_text
+from flamerecon.errors import FlameReconError, errno_text, output_error
+from flamerecon.outputs.atomic import make_folder
 
 
 def one_line(err: BaseException) -> str:
@@ -26,33 +31,102 @@ def fail(message: str, status: int = 2) -> int:
 
 
 class ArgumentParser(argparse.ArgumentParser):
-    """argparse with a ``--debug`` flag and the project's error line (exit status 2)."""
+    """argparse with a ``--debug`` flag and the project's one error line (exit status 2; the
+    usage is left to ``--help``)."""
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.add_argument("--debug", action="store_true", help="show the traceback of an error")
 
+    def checked(self, name: str, kind: Callable[[str], object], text: str):
+        """``kind(text)`` (an argparse type) for a value that argparse did not read, e.g. a path
+        made from another argument; its error ends the script as argument ``name``'s."""
+        try:
+            return kind(text)
+        except argparse.ArgumentTypeError as err:
+            self.error(f"argument {name}: {err}")
+
     def error(self, message: str):
-        self.print_usage(sys.stderr)
         raise SystemExit(fail(f"{self.prog}: {message}; see {self.prog} --help"))
 
 
+def script_parser(doc: str, file: str) -> ArgumentParser:
+    """The parser of the script ``file`` (its ``__file__``): ``--help`` shows ``doc`` (its module
+    docstring) whole, line breaks kept, and errors name the script."""
+    return ArgumentParser(prog=Path(file).name, description=doc.strip(),
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
 def frame_list(text: str) -> list[int]:
-    """argparse type: '5,25,45' -> [5, 25, 45]."""
+    """argparse type: '5,25,45' -> [5, 25, 45] (frame numbers >= 0, at least one)."""
     try:
-        return [int(f) for f in text.split(",") if f]
+        frames = [int(f) for f in text.split(",") if f.strip()]
     except ValueError as err:
         raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got '{text}'") from err
+    if not frames or min(frames) < 0:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers >= 0, got '{text}'")
+    return frames
 
 
-def compose_train(overrides: list[str], default_scene: str = "scalarflow"):
+def at_least(least: int) -> Callable[[str], int]:
+    """argparse type: an integer >= ``least``."""
+
+    def read(text: str) -> int:
+        try:
+            number = int(text)
+        except ValueError:
+            number = None
+        if number is None or number < least:
+            raise argparse.ArgumentTypeError(f"got '{text}'; give an integer >= {least}")
+        return number
+
+    read.__name__ = f"integer >= {least}"
+    return read
+
+
+def output_folder(text: str) -> Path:
+    """argparse type of an output folder, checked before any work: made (``mkdir -p``) and
+    writable, or the argument's error (read-only, no permission, a file in the way)."""
+    folder = Path(text)
+    if folder.exists() and not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"{folder}: is a file, not a folder; give a folder")
+    return _writable(folder, folder)
+
+
+def output_file(text: str) -> Path:
+    """argparse type of an output file, checked before any work: its folder made and writable,
+    the file itself not a folder."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{path}: is a folder; give a file name")
+    if path.parent.exists() and not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{path.parent}: is a file, not a folder")
+    _writable(path.parent, path)
+    return path
+
+
+def _writable(folder: Path, path: Path) -> Path:
+    """``path`` once ``folder`` is made and a file could be created in it (tried and removed)."""
+    try:
+        make_folder(folder)
+        fd, probe = tempfile.mkstemp(prefix=".flamerecon-probe-", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except FlameReconError as err:
+        raise argparse.ArgumentTypeError(one_line(err)) from None
+    except OSError as err:
+        raise argparse.ArgumentTypeError(one_line(output_error(path, err))) from None
+    return path
+
+
+def compose_train(overrides: list[str], default_scene: str | None = "scalarflow"):
     """``conf/train.yaml`` composed with train.py ``overrides``, ``scene=<default_scene>`` in
-    front unless they choose a scene (the real-capture scripts' default)."""
+    front unless they choose a scene (the real-capture scripts' default; None: the config's)."""
     from hydra import compose, initialize_config_dir
 
     from flamerecon.resources import config_dir
 
-    if not any(o.startswith("scene=") for o in overrides):
+    if default_scene and not any(o.startswith("scene=") for o in overrides):
         overrides = [f"scene={default_scene}", *overrides]
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         return compose(config_name="train", overrides=overrides)

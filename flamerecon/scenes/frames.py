@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from flamerecon.native import native_stderr_silenced
 from flamerecon.scenes.base import SceneError
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm")
@@ -56,7 +57,8 @@ def read_image(path: str | Path) -> np.ndarray:
     if not path.is_file():
         refuse_link_loop(path)
         raise SceneError(f"{path}: image file not found")
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with native_stderr_silenced():  # libpng and friends print their own complaint
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.size == 0:
         raise SceneError(f"{path}: cannot decode the image (corrupt file or unknown format)")
     return _to_float_rgb(raw, path)
@@ -65,16 +67,17 @@ def read_image(path: str | Path) -> np.ndarray:
 def video_length(path: str | Path) -> int:
     """Number of frames a video holds, counted by decoding (container counts can lie)."""
     path = Path(path)
-    cap = cv2.VideoCapture(str(path))
-    try:
-        if not cap.isOpened():
-            raise SceneError(f"{path}: cannot open the video (corrupt file or unsupported codec)")
-        count = 0
-        while cap.grab():
-            count += 1
-        return count
-    finally:
-        cap.release()
+    with native_stderr_silenced():  # ffmpeg prints its own complaint (moov atom not found, ...)
+        cap = cv2.VideoCapture(str(path))
+        try:
+            if not cap.isOpened():
+                raise SceneError(f"{path}: cannot open the video (corrupt file or unsupported codec)")
+            count = 0
+            while cap.grab():
+                count += 1
+            return count
+        finally:
+            cap.release()
 
 
 def read_video_frame(path: str | Path, frame: int) -> np.ndarray:
@@ -88,20 +91,21 @@ def read_video_frame(path: str | Path, frame: int) -> np.ndarray:
         raise SceneError(f"{path}: video file not found")
     if frame < 0:
         raise SceneError(f"{path}: frame {frame}: frame index must be >= 0")
-    cap = cv2.VideoCapture(str(path))
-    try:
-        if not cap.isOpened():
-            raise SceneError(f"{path}: cannot open the video (corrupt file or unsupported codec)")
-        for index in range(frame + 1):
-            if not cap.grab():
-                if index == 0:
-                    raise SceneError(f"{path}: cannot decode any frame of the video")
-                raise SceneError(
-                    f"{path}: frame {frame}: beyond the end of the video ({index} frames)"
-                )
-        ok, raw = cap.retrieve()
-    finally:
-        cap.release()
+    with native_stderr_silenced():  # ffmpeg prints its own complaint (moov atom not found, ...)
+        cap = cv2.VideoCapture(str(path))
+        try:
+            if not cap.isOpened():
+                raise SceneError(f"{path}: cannot open the video (corrupt file or unsupported codec)")
+            for index in range(frame + 1):
+                if not cap.grab():
+                    if index == 0:
+                        raise SceneError(f"{path}: cannot decode any frame of the video")
+                    raise SceneError(
+                        f"{path}: frame {frame}: beyond the end of the video ({index} frames)"
+                    )
+            ok, raw = cap.retrieve()
+        finally:
+            cap.release()
     if not ok or raw is None:
         raise SceneError(f"{path}: frame {frame}: cannot decode this frame")
     return _to_float_rgb(raw, path)
