@@ -135,3 +135,11 @@ def test_the_detail_band_keeps_its_size_in_native_pixels():
     assert detail_sigma(scene_of(960, 540)) == 4.0  # at 1/2: the same structures
     assert detail_sigma(scene_of(1920, 1080)) == 8.0
     assert detail_sigma(scene_of(240, 320)) == pytest.approx(2.0 * 240 / 270)  # the synthetic flame
+
+
+def test_the_detail_band_of_an_image_smaller_than_its_kernel_is_defined():
+    from flamerecon.evaluate.metrics import detail_band
+
+    image = torch.rand(3, 6, 5)
+    band = detail_band(image, sigma=8.0)  # a 49-px kernel on a 6x5 image
+    assert band.shape == image.shape and torch.isfinite(band).all() and band.abs().sum() > 0

@@ -40,8 +40,8 @@ DETAIL_REFERENCE_PX = 270
 
 def detail_band(image: torch.Tensor, sigma: float) -> torch.Tensor:
     """The fine-detail band of images (..., C, H, W): each minus its Gaussian blur of ``sigma``
-    pixels (kernel 2*ceil(3 sigma)+1, reflected at the border)."""
-    size = 2 * math.ceil(3 * sigma) + 1
+    pixels (kernel 2*ceil(3 sigma)+1, at most 2 min(H, W) - 1, reflected at the border)."""
+    size = min(2 * math.ceil(3 * sigma) + 1, 2 * min(image.shape[-2:]) - 1)  # reflection needs pad < side
     flat = image.reshape(-1, *image.shape[-3:]).double()
     blurred = kornia.filters.gaussian_blur2d(flat, (size, size), (sigma, sigma), border_type="reflect")
     return (flat - blurred).reshape(image.shape)
