@@ -28,6 +28,7 @@ from omegaconf import OmegaConf
 
 from flamerecon.errors import FlameReconError
 from flamerecon.evaluate.scores import score
+from flamerecon.outputs.atomic import atomic_append_text
 from flamerecon.run.pipeline import calibrated_scene, mean_of, prepare, resolve_device, solve
 from flamerecon.run.runner import script_error
 from flamerecon.scenes import load_scene
@@ -79,8 +80,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {frame:>5} {mode:<16} {row['heldout_psnr']:9.2f} {row['train_psnr']:9.2f} "
                       f"{row['heldout_black']:7.2f} {shift:10.2f} {row['seconds']:8.1f}", flush=True)
                 if args.out:
-                    with args.out.open("a") as f:
-                        f.write(json.dumps(row) + "\n")
+                    atomic_append_text(args.out, json.dumps(row) + "\n")
     except (FlameReconError, FileNotFoundError, HydraException) as err:
         return script_error(err, args.debug)
     print(f"load average {os.getloadavg()[0]:.1f} at the end", flush=True)
