@@ -266,8 +266,12 @@ class Need:
     needs: str
 
 
+_REFINEMENT = "a refinement (calibration.refine=pose or pose+intrinsics, or a calibration.file)"
+
+
 def _refined(flat: Mapping) -> bool:
-    return flat.get("calibration.refine", "none") != "none"
+    """Cameras refined now, or read from a calibration file (which the other keys describe)."""
+    return flat.get("calibration.refine", "none") != "none" or flat.get("calibration.file") is not None
 
 
 def _has_candidates(flat: Mapping) -> bool:
@@ -289,9 +293,9 @@ def _changed(default) -> Callable[[object], bool]:
 NEEDS: dict[str, Need] = {
     "select.auto": Need(bool, _has_candidates, "candidates for the run's solver in select.candidates "
                         "(select.candidates.<solver.name>: a non-empty list)"),
-    "calibration.frames": Need(bool, _refined, "a refinement (calibration.refine=pose or pose+intrinsics)"),
-    "calibration.gauge": Need(_changed("mean"), _refined, "a refinement (calibration.refine=pose or pose+intrinsics)"),
-    "calibration.rig": Need(bool, _refined, "a refinement (calibration.refine=pose or pose+intrinsics)"),
+    "calibration.frames": Need(bool, _refined, _REFINEMENT),
+    "calibration.gauge": Need(_changed("mean"), _refined, _REFINEMENT),
+    "calibration.rig": Need(bool, _refined, _REFINEMENT),
     "grid.level_iters": Need(lambda v: v is not None, lambda flat: bool(flat.get("grid.levels")),
                              "coarse levels (grid.levels, e.g. [16, 32])"),
     **{f"temporal.{key}": Need(_changed(default), _frames, "frames solved jointly (scene.frames=[first,last])")
