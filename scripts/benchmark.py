@@ -23,13 +23,11 @@ one A^T y against bytes(A) / bandwidth, and a fused A^T (A y - b) in one sweep (
 from __future__ import annotations
 
 import hashlib
-import json
 import multiprocessing as mp
 import os
 import platform
 import queue as queue_module
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -43,6 +41,7 @@ from flamerecon.geometry.hull import visual_hull
 from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.operators.projector import assemble, camera_rays
 from flamerecon.operators.sparse import CsrOperator
+from flamerecon.outputs.atomic import atomic_path, make_folder, save_npz_atomic, write_json_atomic
 from flamerecon.run.cli import output_file, output_folder, run_script, script_parser
 from flamerecon.scenes import load_scene
 from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
@@ -223,10 +222,8 @@ def reference(A: CsrOperator, P: torch.Tensor, lam: float, cache: Path, iters: i
         if f[c] - lower[c] > 1e-9 * f[c]:  # the active-set polish only where pqn stopped short
             x[:, c], f[c], lower[c] = polish_column(A64, b, lam, x[:, c].copy())
     seconds = time.perf_counter() - start
-    cache.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=cache, suffix=".tmp", delete=False) as fh:
-        np.savez(fh, key=key, x=x, f=f, lower=lower, seconds=seconds)
-    os.replace(fh.name, path)
+    make_folder(cache)
+    save_npz_atomic(path, key=key, x=x, f=f, lower=lower, seconds=seconds)
     return {"x": x, "f": f, "lower": lower, "seconds": seconds, "cached": False}
 
 
@@ -399,22 +396,19 @@ def fused_seconds(A: CsrOperator, y: torch.Tensor, b: torch.Tensor) -> tuple[flo
 
 
 def write_json(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as f:
-        json.dump(data, f, indent=2)
-    os.replace(f.name, path)
+    make_folder(path.parent)
+    write_json_atomic(path, data)
 
 
 def dump(folder: Path, A, P: np.ndarray, lam: float, x: np.ndarray) -> None:
     """A.npz (scipy CSR) and problem.npz (P, lam, x), each written whole or not at all."""
     import scipy.sparse as sp
 
-    folder.mkdir(parents=True, exist_ok=True)
+    make_folder(folder)
     for name, save in (("A.npz", lambda f: sp.save_npz(f, A)),
                        ("problem.npz", lambda f: np.savez(f, P=P, lam=lam, x=x))):
-        with tempfile.NamedTemporaryFile(dir=folder, suffix=".tmp", delete=False) as f:
+        with atomic_path(folder / name) as tmp, open(tmp, "wb") as f:
             save(f)
-        os.replace(f.name, folder / name)
 
 
 def seconds_to(trace: list[tuple[float, float]], f_ref: float, target: float) -> float | None:

@@ -16,13 +16,13 @@ import sys
 from pathlib import Path
 
 from flamerecon.device import resolve_device
-from flamerecon.run.cli import ArgumentParser, run_script
+from flamerecon.run.cli import run_script, script_parser
 from flamerecon.run.lock import run_lock
 from flamerecon.run.pipeline import evaluate, summary_table
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__, __file__)
     parser.add_argument("run_dir", type=Path, help="a run folder written by train.py")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda")
     parser.add_argument("--no-native", dest="native", action="store_false",

@@ -21,6 +21,7 @@ import time
 from omegaconf import OmegaConf
 
 from flamerecon.evaluate.scores import score
+from flamerecon.outputs.atomic import atomic_append_text
 from flamerecon.run.cli import compose_train, frame_list, output_file, run_script, script_parser
 from flamerecon.run.pipeline import calibrated_scene, mean_of, prepare, resolve_device, solve
 from flamerecon.scenes import load_scene
@@ -84,8 +85,7 @@ def run(args: argparse.Namespace) -> None:
             print(f"  {frame:>5} {mode:<16} {row['heldout_psnr']:9.2f} {row['train_psnr']:9.2f} "
                   f"{row['heldout_black']:7.2f} {shift:10.2f} {row['seconds']:8.1f}", flush=True)
             if args.out:
-                with args.out.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
+                atomic_append_text(args.out, json.dumps(row) + "\n")
     print(f"load average {os.getloadavg()[0]:.1f} at the end", flush=True)
 
 

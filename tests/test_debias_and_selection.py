@@ -156,7 +156,8 @@ def test_selection_refuses_a_misspelt_candidate_key(tiny):
                        setup)
 
 
-def test_selection_is_off_for_a_solver_without_candidates(tiny):
+def test_selection_for_a_solver_without_candidates_is_refused(tiny):
+    """select.auto would do nothing there (issue 20): refused by name, not ignored."""
     _cfg, _scene, setup = tiny
-    same, record = choose_weights(config("solver=cgls", "select.auto=true"), setup)
-    assert record is None and same.solver == config("solver=cgls").solver
+    with pytest.raises(ConfigError, match=r"^select.auto: got True, which does nothing without candidates for the run.s solver"):
+        choose_weights(config("solver=cgls", "select.auto=true"), setup)

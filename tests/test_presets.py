@@ -42,7 +42,7 @@ def hydra_options(*overrides: str) -> fr.ReconstructionOptions:
 @pytest.mark.parametrize("scene", SCENES)
 def test_a_preset_is_the_command_lines_composition_of_its_scene(scene):
     assert fr.preset(scene) == hydra_options(f"scene={scene}")
-    overrides = ("solver=fista", "grid.resolution=48", "calibration.frames=[1,2]")
+    overrides = ("solver=fista", "grid.resolution=48", "calibration.refine=pose", "calibration.frames=[1,2]")
     assert fr.preset(scene, *overrides) == hydra_options(f"scene={scene}", *overrides)
 
 

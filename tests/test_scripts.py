@@ -116,10 +116,7 @@ def test_every_script_has_a_smoke_call():
     assert sorted(CALLS) == SCRIPTS
 
 
-@pytest.mark.parametrize("name", [
-    pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="scripts/evaluate.py moves to script_parser with "
-                                            "the atomic-write work (wt-integrity)") if n == "evaluate" else [])
-    for n in SCRIPTS])
+@pytest.mark.parametrize("name", SCRIPTS)
 def test_help_prints_the_whole_docstring(name, capsys):
     module = load(name)
     assert call(name, ["--help"]) == 0

@@ -12,7 +12,7 @@ every config group has one.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from flamerecon.arguments import describe
@@ -255,6 +255,63 @@ def leaves(tree: dict, prefix: str = "") -> dict[str, object]:
     return out
 
 
+@dataclass(frozen=True)
+class Need:
+    """An option that does something only together with another: ``used(value)`` says the
+    option was set to do something, ``met(flat options)`` whether what it needs is there
+    (``needs``, in words, for the message)."""
+
+    used: Callable[[object], bool]
+    met: Callable[[Mapping], bool]
+    needs: str
+
+
+_REFINEMENT = "a refinement (calibration.refine=pose or pose+intrinsics, or a calibration.file)"
+
+
+def _refined(flat: Mapping) -> bool:
+    """Cameras refined now, or read from a calibration file (which the other keys describe)."""
+    return flat.get("calibration.refine", "none") != "none" or flat.get("calibration.file") is not None
+
+
+def _has_candidates(flat: Mapping) -> bool:
+    candidates = flat.get("select.candidates") or {}
+    return bool(candidates.get(flat.get("solver.name")))
+
+
+def _frames(flat: Mapping) -> bool:
+    return flat.get("scene.frames") is not None
+
+
+def _changed(default) -> Callable[[object], bool]:
+    return lambda value: value != default
+
+
+#: options accepted alone but doing nothing without another: refused by name
+#: (:func:`check_needs`) rather than ignored in silence. ``temporal.*`` against its defaults
+#: in conf/train.yaml.
+NEEDS: dict[str, Need] = {
+    "select.auto": Need(bool, _has_candidates, "candidates for the run's solver in select.candidates "
+                        "(select.candidates.<solver.name>: a non-empty list)"),
+    "calibration.frames": Need(bool, _refined, _REFINEMENT),
+    "calibration.gauge": Need(_changed("mean"), _refined, _REFINEMENT),
+    "calibration.rig": Need(bool, _refined, _REFINEMENT),
+    "grid.level_iters": Need(lambda v: v is not None, lambda flat: bool(flat.get("grid.levels")),
+                             "coarse levels (grid.levels, e.g. [16, 32])"),
+    **{f"temporal.{key}": Need(_changed(default), _frames, "frames solved jointly (scene.frames=[first,last])")
+       for key, default in {"l2": 0.01, "tv": 0.0, "motion": "none", "max_shift": 3, "tol": 1.0e-5}.items()},
+}
+
+
+def check_needs(flat: Mapping, error: type[FlameReconError] = ConfigError) -> None:
+    """Raise ``error`` for the first option of ``flat`` ({dotted key: value}) set to do something
+    that needs another option which is not there (:data:`NEEDS`)."""
+    for key, need in NEEDS.items():
+        if key in flat and need.used(flat[key]) and not need.met(flat):
+            raise error(f"{key}: got {describe(flat[key])}, which does nothing without {need.needs}; "
+                        f"set that too or leave {key} at its default")
+
+
 #: solvers whose ``max_iters`` may be null (LARS: 10 path steps per voxel).
 NULL_MAX_ITERS = ("lars",)
 
@@ -272,3 +329,4 @@ def check_options(config: dict) -> None:
     if unbounded and name not in NULL_MAX_ITERS:
         raise ConfigError(f"solver.max_iters: got None; solver {name} needs an integer >= 1 "
                           "(only lars takes null)")
+    check_needs(flat)

@@ -16,7 +16,14 @@ from typing import Any
 from flamerecon.arguments import instance, one_or_many, wrong_value
 from flamerecon.errors import ArgumentError, ConfigError, FlameReconError
 from flamerecon.fit.debias import DebiasOptions
-from flamerecon.fit.option_rules import NULL_MAX_ITERS, check_fields, check_options, check_section
+from flamerecon.fit.option_rules import (
+    NULL_MAX_ITERS,
+    check_fields,
+    check_needs,
+    check_options,
+    check_section,
+    leaves,
+)
 from flamerecon.fit.refine_cameras import RefineOptions
 from flamerecon.fit.weight_selection import SelectionOptions
 from flamerecon.plain import plain
@@ -213,6 +220,7 @@ class ReconstructionOptions:
         holdout = one_or_many(self.holdout)  # one view, not its name's characters
         object.__setattr__(self, "holdout", tuple(holdout) if isinstance(holdout, list) else holdout)
         check_fields("", {k: getattr(self, k) for k in ("holdout", "init", "seed", "device", "threads")})
+        check_needs(leaves(self.as_dict()), ArgumentError)
 
     @classmethod
     def from_dict(cls, config: Mapping, ignore: tuple[str, ...] = ()) -> ReconstructionOptions:

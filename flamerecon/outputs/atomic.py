@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import json
+import math
 import os
 import re
 import tempfile
@@ -75,13 +76,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     tmp = Path(tmp_name)
     try:
         yield tmp
-        if not tmp.exists():
-            raise FileNotFoundError(f"writer produced no file at {tmp} for {dest}")
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600; give the usual permissions of a new file
-        os.replace(tmp, dest)
-        _fsync_dir(folder)
+        _commit(tmp, dest)
     except BaseException as err:
         full = isinstance(err, (OSError, RuntimeError)) and disk_full(folder)  # before the unlink
         with contextlib.suppress(OSError):
@@ -93,6 +88,18 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
         if full:  # a writer that reports a full disk without an errno (numpy, torch, VTK)
             raise output_error(dest, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))) from err
         raise
+
+
+def _commit(tmp: Path, dest: Path) -> None:
+    """Make the complete temporary ``tmp`` durable and rename it over ``dest``: the one step
+    every file written here passes (the disk-full tests fail it on purpose)."""
+    if not tmp.exists():
+        raise FileNotFoundError(f"writer produced no file at {tmp} for {dest}")
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600; give the usual permissions of a new file
+    os.replace(tmp, dest)
+    _fsync_dir(dest.parent if str(dest.parent) else Path("."))
 
 
 def make_folder(path: str | os.PathLike) -> Path:
@@ -135,10 +142,51 @@ def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8
     return atomic_write_bytes(path, text.encode(encoding))
 
 
+def atomic_append_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> Path:
+    """Append ``text`` to the file at ``path`` (a log of rows) by writing the whole file again
+    atomically: a failed append leaves the rows before it, never half a row."""
+    path = Path(path)
+    try:
+        old = path.read_bytes()
+    except FileNotFoundError:
+        old = b""
+    except OSError as err:
+        raise output_error(path, err) from err
+    return atomic_write_bytes(path, old + text.encode(encoding))
+
+
 def write_json_atomic(path: str | os.PathLike, obj: Any, indent: int = 2) -> Path:
-    """Serialise ``obj`` as JSON (numpy scalars and arrays converted) and write it atomically."""
-    text = json.dumps(obj, indent=indent, default=_json_default) + "\n"
+    """Serialise ``obj`` as strict JSON (numpy scalars and arrays converted; a NaN or infinite
+    number becomes null, which every JSON reader accepts) and write it atomically."""
+    text = json.dumps(finite(obj), indent=indent, allow_nan=False) + "\n"
     return atomic_write_text(path, text)
+
+
+def update_json_atomic(path: str | os.PathLike, changes: dict) -> dict:
+    """Replace the top-level fields ``changes`` names in the JSON object at ``path`` and keep
+    every other field (what another tool wrote there), atomically; returns the merged object.
+    A missing or unreadable file is written with ``changes`` alone."""
+    path = Path(path)
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        old = {}
+    merged = {**(old if isinstance(old, dict) else {}), **changes}
+    write_json_atomic(path, merged)
+    return merged
+
+
+def finite(obj: Any) -> Any:
+    """``obj`` as plain JSON values: numpy and torch values converted, NaN and infinities None."""
+    if isinstance(obj, dict):
+        return {str(k): finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, (str, int)):
+        return obj
+    return finite(_json_default(obj))
 
 
 def save_npz_atomic(path: str | os.PathLike, compressed: bool = False, **arrays: Any) -> Path:

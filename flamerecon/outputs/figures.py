@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import value, wrong_type, wrong_value
-from flamerecon.outputs.atomic import atomic_path
+from flamerecon.outputs.atomic import atomic_path, atomic_write_bytes, write_errno
 from flamerecon.outputs.export import voxel_size
 from flamerecon.rules import number
 
@@ -178,12 +178,13 @@ def montage(images: Sequence[np.ndarray], columns: int, labels: Sequence[str] = 
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """(H, W, 3) uint8 RGB to PNG, atomically."""
+    """(H, W, 3) uint8 RGB to PNG, atomically. Encoded in memory: ``cv2.imwrite`` reports
+    success for a file it could not finish (a full disk), Python's own write does not."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(image[..., ::-1])):
-            raise OSError(f"{path}: OpenCV could not write the PNG")
-    return path
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1]))
+    if not ok:
+        raise ValueError(f"{path}: OpenCV could not encode a {image.shape} {image.dtype} image as PNG")
+    return atomic_write_bytes(path, png.tobytes())
 
 
 def write_mp4(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 24.0) -> Path:
@@ -203,7 +204,20 @@ def write_mp4(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float 
                 writer.write(np.ascontiguousarray(frame[..., ::-1]))
         finally:
             writer.release()
+        _check_video(tmp, path, len(frames))
     return path
+
+
+def _check_video(tmp: Path, path: Path, count: int) -> None:
+    """Read the video OpenCV wrote at ``tmp`` back: its writer reports no failed write (a full
+    disk leaves a file without its index), so a file that does not open with ``count`` frames
+    is an error naming ``path``."""
+    video = cv2.VideoCapture(str(tmp)) if tmp.stat().st_size else None
+    frames = int(video.get(cv2.CAP_PROP_FRAME_COUNT)) if video is not None and video.isOpened() else 0
+    if video is not None:
+        video.release()
+    if frames != count:
+        raise write_errno(tmp.parent, OSError(f"the video has {frames} of {count} frames"))
 
 
 def write_gif(path: str | os.PathLike, frames: Sequence[np.ndarray], fps: float = 12.0) -> Path:

@@ -23,7 +23,7 @@ from flamerecon.fit.checks import check_density_fits
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Reconstruction, mean_of
 from flamerecon.geometry.grid import VoxelGrid
-from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.outputs.atomic import update_json_atomic, write_json_atomic
 from flamerecon.outputs.cameras_file import camera_records, cameras_from_records
 from flamerecon.outputs.export import load_density, save_density
 from flamerecon.outputs.figures import top_view
@@ -246,10 +246,11 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
 
 def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> dict:
     """Re-render the views of a finished run from its saved ``density.npz`` and config,
-    write ``metrics.json`` and ``renders/``; returns the metrics. With ``native`` the held-out
+    rewrite the scores in ``metrics.json`` (its other fields, such as the run's ``timing``,
+    kept) and ``renders/``; returns the metrics. With ``native`` the held-out
     views are also scored at the capture's native resolution (``scene.downscale=1``)."""
     run = load_run(run_dir, device)
     metrics, held_imgs = run.scores(native)
     metrics["solver"] = run.solver
-    write_scores(run.folder, metrics, held_imgs, run.scene, run.holdout)
-    return metrics
+    write_renders(run.folder, held_imgs, run.scene, run.holdout)
+    return update_json_atomic(run.folder / "metrics.json", metrics)  # keeps the run's timing

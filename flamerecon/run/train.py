@@ -8,8 +8,10 @@ traceback); ``resume=RUN_DIR`` continues an interrupted run in its folder.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import hydra
+import hydra.core.utils
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
@@ -26,6 +28,23 @@ def task(cfg: DictConfig) -> float | None:
                     cwd=hc.runtime.cwd, overrides=list(hc.overrides.task))
 
 
+def save_config(cfg: DictConfig, filename: str, output_dir: Path) -> None:
+    """Hydra's ``.hydra/*.yaml`` save, whole or not at all (Hydra's own truncates the file on a
+    full disk). It runs before the task, where Hydra would print an exception as a refused
+    command line: a failed write ends here in the one-line error, exit status 2."""
+    from omegaconf import OmegaConf
+
+    from flamerecon.errors import FlameReconError
+    from flamerecon.outputs.atomic import atomic_write_text, make_folder
+
+    try:
+        atomic_write_text(make_folder(output_dir) / filename, OmegaConf.to_yaml(cfg))
+    except FlameReconError as err:
+        print(f"flamerecon: error: {err}", file=sys.stderr)
+        raise SystemExit(err.exit_code) from None
+
+
+hydra.core.utils._save_config = save_config  # run_job looks it up in its module at each job
 #: Hydra names the job after this module (``train``, so ``train.log``)
 hydra_main = hydra.main(version_base="1.3", config_path=str(config_dir()), config_name="train")(task)
 
