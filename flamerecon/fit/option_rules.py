@@ -293,7 +293,8 @@ def _changed(default) -> Callable[[object], bool]:
 NEEDS: dict[str, Need] = {
     "select.auto": Need(bool, _has_candidates, "candidates for the run's solver in select.candidates "
                         "(select.candidates.<solver.name>: a non-empty list)"),
-    "calibration.frames": Need(bool, _refined, _REFINEMENT),
+    # calibration.frames alone is not refused: a scene preset sets it (scalarflow: [30, 50, 70]), and
+    # calibration.refine=none must turn the refinement off without the user emptying it too
     "calibration.gauge": Need(_changed("mean"), _refined, _REFINEMENT),
     "calibration.rig": Need(bool, _refined, _REFINEMENT),
     "grid.level_iters": Need(lambda v: v is not None, lambda flat: bool(flat.get("grid.levels")),
