@@ -42,6 +42,7 @@ from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.operators.projector import assemble, camera_rays
 from flamerecon.operators.sparse import CsrOperator
 from flamerecon.outputs.atomic import atomic_path, make_folder, save_npz_atomic, write_json_atomic
+from flamerecon.progress import Progress
 from flamerecon.run.cli import output_file, output_folder, run_script, script_parser
 from flamerecon.scenes import load_scene
 from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
@@ -191,6 +192,13 @@ def polish_column(A64, b: np.ndarray, lam: float, x: np.ndarray, rounds: int = 8
     return best_x, float(best_p), float(best_d)
 
 
+def solve_progress(what: str, iters: int):
+    """A solver callback that logs the iterations done of at most ``iters`` (every 10 s; the
+    remaining time is an upper bound: the solve stops at its tolerance)."""
+    progress = Progress(what, iters, unit="iteration", every=10.0)
+    return lambda it, x, info: progress.update(it, f"relative gap {info['rel_gap']:.1e}" if "rel_gap" in info else "")
+
+
 def reference(A: CsrOperator, P: torch.Tensor, lam: float, cache: Path, iters: int) -> dict:
     """The certified float64 optimum of every column, from ``cache/reference.npz`` when its
     key matches (A, P, lambda), else solved (``pqn`` in float32, then from there in float64
@@ -205,11 +213,13 @@ def reference(A: CsrOperator, P: torch.Tensor, lam: float, cache: Path, iters: i
                     "seconds": float(got["seconds"]), "cached": True}
     start = time.perf_counter()
     # float32 gets the objective to ~1e-6 (its duality gap may stay above: at most 1000 iterations)
-    x32 = make_solver("pqn", tol=1e-6, max_iters=min(iters, 1000)).solve(Problem(A, P, lam)).x
+    x32 = make_solver("pqn", tol=1e-6, max_iters=min(iters, 1000)).solve(
+        Problem(A, P, lam), callback=solve_progress("reference solve, float32", min(iters, 1000))).x
     A64op = CsrOperator(A.A.cpu().double(), A.AT.cpu().double())
     P64 = P.cpu().double()
     solver = make_solver("pqn", tol=1e-9, max_iters=iters, check_every=10)
-    found = solver.solve(Problem(A64op, P64, lam), x0=x32.cpu().double())
+    found = solver.solve(Problem(A64op, P64, lam), x0=x32.cpu().double(),
+                         callback=solve_progress("reference solve, float64", iters))
     x = found.x.numpy()
     print(f"  reference: pqn in float64, {found.iterations} iterations, relative gap "
           f"{found.history[-1]['rel_gap'] if found.history else float('nan'):.1e}, "

@@ -26,6 +26,7 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 
 from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.progress import Progress
 from flamerecon.resources import config_dir
 from flamerecon.run.cli import output_folder, run_script, script_parser
 from flamerecon.run.leave_one_out import leave_one_out
@@ -105,12 +106,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
 
     def run() -> None:
+        steps = Progress("cross-validation", len(settings), unit="setting")
         for i, setting in enumerate(settings):
             row = score_setting([*args.overrides, *setting], averages, exclude, args.test, out / f"{i:03d}")
             rows.append(row)
             print(f"  {' '.join(setting) or '(base)'}: CV PSNR {row['cv_psnr']:.2f} dB"
                   + (f", test {row['test_psnr']:.2f} dB" if "test_psnr" in row else ""), flush=True)
             write_json_atomic(out / "cv.json", {"exclude": exclude, "settings": rows})
+            steps.step(" ".join(setting) or "(base)")
         print(f"cross-validation ({len(rows)} settings): {out / 'cv.json'}\n{table(rows, sweep_keys)}")
         if reports:
             best = max(range(len(rows)), key=lambda i: rows[i]["cv_psnr"])

@@ -173,7 +173,7 @@ def render(args: argparse.Namespace) -> list[Path]:
         written.append(write_png(out / "views_10.png", sheet))
         try:
             written.append(slices_figure(out / "slices.png", density, lo, hi,
-                                         title=str(args.run_dir)))
+                                         title=str(args.run_dir), up=args.up))
         except ImportError as err:
             print(f"flamerecon: slices.png skipped: {err}", file=sys.stderr)
     return written

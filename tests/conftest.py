@@ -7,12 +7,17 @@ whole suite runs in a few minutes on two busy CPU cores.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 from flamerecon.geometry.grid import VoxelGrid
 from tests.helpers import REPO
+
+#: no progress lines from the library and the commands the tests start (tests/test_progress.py
+#: turns them on where it reads them)
+os.environ["FLAMERECON_PROGRESS"] = "0"
 
 #: the small synthetic scene the hull and synthetic tests share (keys of scenes/synthetic.py).
 SMALL_SCENE = {

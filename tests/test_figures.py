@@ -16,15 +16,20 @@ import torch
 from flamerecon.geometry.cameras import camera_centers, project_points
 from flamerecon.outputs.export import save_density
 from flamerecon.outputs.figures import (
-    compare_images,
+    BAR_LABEL_PX,
+    BAR_PX,
+    TITLE_PX,
+    centroid_index,
     framing_distance,
     grid_of,
+    heldout_figure,
     hull_masks,
     montage,
     orbit_cameras,
     overlay_mask,
     project_along,
     render_views,
+    slice_panels,
     slices_figure,
     support_box,
     to_rgb8,
@@ -205,15 +210,48 @@ def test_hull_masks_and_overlay():
     assert out[16, 16, 1] > 0 and out[2, 2].sum() == 0
 
 
-def test_compare_images_panels():
-    rendered = np.full((3, 4, 5), 0.5, np.float32)
-    captured = rendered.copy()
-    captured[:, 0, 0] = 1.0
-    row = compare_images(rendered, captured)
-    assert row.shape == (4, 15, 3)
-    assert (row[1:, :5] == row[1:, 5:10]).all() and not (row[0, 0] == row[0, 5]).all()
-    error_panel = row[:, 10:]
-    assert error_panel[0, 0].sum() > error_panel[2, 2].sum()  # the one wrong pixel stands out
+def test_the_heldout_figure_has_titles_and_a_colour_bar_for_the_error():
+    rendered = torch.full((3, 40, 50), 0.5)
+    captured = rendered.clone()
+    captured[:, 0, 0] = 1.0  # one wrong pixel, error 0.5
+    figure = heldout_figure(rendered, captured, "cam03")
+    assert figure.shape == (TITLE_PX + 40, 3 * 50 + BAR_PX + BAR_LABEL_PX, 3) and figure.dtype == np.uint8
+    assert figure[:TITLE_PX, :150].max() > 128  # "rendered cam03", "captured", "|error|" written above
+    panels = figure[TITLE_PX:]
+    assert (panels[5:, :50] == panels[5:, 50:100]).all()
+    error = panels[:, 100:150]
+    assert error[0, 0].sum() > error[20, 20].sum()  # the one wrong pixel stands out
+    bar = panels[:, 150:150 + BAR_PX].astype(int).sum(-1)
+    assert bar[0, 0] > bar[len(bar) // 2, 0] > bar[-1, 0]  # bright (the largest error) at the top
+    np.testing.assert_array_equal(panels[0, 100 + 0], panels[0, 150])  # the bar's top is that error's colour
+    assert figure[TITLE_PX:, 150 + BAR_PX:].max() > 128  # the scale's labels
+
+
+def test_slices_pass_through_the_centre_of_mass_upright():
+    vol = np.zeros((1, 2, 8, 4), dtype=np.float32)
+    vol[0, 1, 5:7, 3] = 1.0  # a short upright bar off the box centre, at (i, k) = (3, 1), j = 5..6
+    assert centroid_index(vol) in ((3, 6, 1), (3, 5, 1))
+    panels = slice_panels(vol[0], LO, HI, centroid_index(vol), up="y")
+    assert [(h, v) for _, h, v, _ in panels] == [(0, 1), (2, 1), (0, 2)]  # y upward in the vertical planes
+    for plane, h, v, title in panels:
+        assert plane.max() == 1.0, title  # every plane cuts the bar
+        assert plane.shape == (vol.shape[3 - v], vol.shape[3 - h])  # rows along the vertical axis
+    assert panels[0][0][5:7, 3].tolist() == [1.0, 1.0]  # the bar stands up in the xy plane
+
+
+def test_the_slices_figure_has_a_colour_bar(tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from matplotlib.figure import Figure
+
+    made = []
+    real = Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: (made.append(fig), real(fig, *a, **k))[1])
+    slices_figure(tmp_path / "slices.png", _blob(), LO, HI)
+    axes = made[0].axes
+    assert len(axes) == 4  # three planes and the colour bar
+    assert [a.get_xlabel() + a.get_ylabel() for a in axes[:3]] == ["xy", "zy", "xz"]
+    assert axes[3].get_ylabel() == "density"
+    assert "centre of mass" in made[0].get_suptitle()
 
 
 def test_support_box_and_empty_volume():

@@ -308,7 +308,11 @@ def test_a_refined_run_records_both_calibrations_and_the_training_psnr_before_an
         assert math.isfinite(record[key])
     assert record["train_psnr_after"] == pytest.approx(
         sum(v["psnr"] for v in metrics["train"].values()) / len(metrics["train"]))
-    assert "calibration (pose+intrinsics)" in summary_table(metrics)
+    table = summary_table(metrics)
+    assert "calibration (pose+intrinsics)" in table
+    # heldout_psnr_before is the camera fit's first solve, not a calibration.refine=none run: said so
+    assert "before refinement" not in table
+    assert f"held-out {record['heldout_psnr_before']:.2f} dB with the capture's cameras in the camera fit's" in table
 
 
 def test_evaluate_scores_a_refined_run_with_its_refined_cameras(refined_run):

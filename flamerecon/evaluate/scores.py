@@ -35,7 +35,7 @@ from flamerecon.operators.projector import (
     support_box,
 )
 from flamerecon.outputs.atomic import atomic_write_bytes, make_folder
-from flamerecon.outputs.figures import side_by_side
+from flamerecon.outputs.figures import heldout_figure
 from flamerecon.outputs.names import file_stems
 from flamerecon.scenes import Scene, load_scene
 from flamerecon.scenes.calibration import downscale_factor
@@ -172,13 +172,14 @@ def score_rendered(rendered: torch.Tensor, scene: Scene, views: list[int],
 
 
 def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
-    """renders/<view>.png: rendered | captured | |error| x4, one per held-out view (the view
+    """renders/<view>.png: rendered | captured | |error| with titles and the error's colour
+    bar (:func:`~flamerecon.outputs.figures.heldout_figure`), one per held-out view (the view
     name made a safe, unique file name, :func:`~flamerecon.outputs.names.file_stems`)."""
     folder = make_folder(run_dir / "renders")
     stems = file_stems(scene.views)
     for img, v in zip(rendered, views):
-        panel = side_by_side(img, scene.images[v]).permute(1, 2, 0).numpy()
-        ok, png = cv2.imencode(".png", (panel[..., ::-1] * 255 + 0.5).astype(np.uint8))
+        panel = heldout_figure(img, scene.images[v], scene.views[v])
+        ok, png = cv2.imencode(".png", np.ascontiguousarray(panel[..., ::-1]))
         if not ok:
             raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")
         atomic_write_bytes(folder / f"{stems[v]}.png", png.tobytes())

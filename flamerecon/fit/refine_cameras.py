@@ -52,6 +52,7 @@ from flamerecon.geometry.cameras import (
 )
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import Rays, integrate_dense, support_box
+from flamerecon.progress import Progress
 
 #: parameters per camera: rotation (3), translation (3), log focal scale (1), principal point (2).
 N_PARAMS = 9
@@ -458,9 +459,12 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
     sizes = prior_sizes(base, pivot, options)
     basis = gauge_basis(base, pivot, sizes, active)
     generator = torch.Generator().manual_seed(int(options.seed))
+    fitted_at_all = bool(active) and basis.shape[1] > 0
+    progress = Progress("camera fit", 1 + (options.rounds if fitted_at_all else 0))
     initial = [frame.solve(list(train), base) for frame in frames]
+    progress.step(f"the density of {len(frames)} frame(s) with the capture's cameras")
     history = []
-    if not active or basis.shape[1] == 0:
+    if not fitted_at_all:
         return Refinement(with_cameras(cameras, train, base), theta, initial[0], history)
     others = options.fit_against == "others" and T >= 3
     rays_per_frame = max(1, int(options.max_rays) // len(frames))
@@ -477,6 +481,7 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
             fits.append(CameraFit(volumes, grid, base, pivot, frame.images[train], index, valid, step))
         theta, info = camera_step(JointFit(fits), theta, sizes, basis, active, options.iterations)
         history.append({**info, "rays": int(sum(int(f.valid.sum()) for f in fits))})
+        progress.step(f"round {r + 1}: cameras fitted")
     fitted = corrected_cameras(base, theta, pivot)
     if options.gauge == "similarity":
         fitted = align_similarity(fitted, base, pivot)

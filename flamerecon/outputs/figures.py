@@ -32,10 +32,34 @@ def to_display(image: torch.Tensor) -> torch.Tensor:
     return image.expand(3, -1, -1) if image.shape[0] == 1 else image[:3]
 
 
-def side_by_side(rendered: torch.Tensor, captured: torch.Tensor) -> torch.Tensor:
-    """rendered | captured | |error| (x4) as one (3, H, 3W) image."""
-    err = ((rendered.clamp(0, 1) - captured).abs() * 4).clamp(0, 1)
-    return torch.cat([to_display(rendered), to_display(captured), to_display(err)], dim=-1)
+#: heights and widths of the held-out figure's title strip and colour bar, pixels
+TITLE_PX, BAR_PX, BAR_LABEL_PX = 14, 8, 40
+
+
+def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "") -> np.ndarray:
+    """A held-out view read without a legend: panels "rendered <view>" | "captured" |
+    "|error|" under a title strip of :data:`TITLE_PX`, the error (mean over channels, the
+    images' units) in the inferno colour map with a colour bar (0 at the bottom, the largest
+    error at the top) to its right: (TITLE_PX + H, 3 W + BAR_PX + BAR_LABEL_PX, 3) uint8,
+    from images (C, H, W) in [0, 1]."""
+    r, c = to_display(rendered), to_display(captured)
+    error = (rendered.detach().float().cpu().clamp(0, 1) - captured.detach().float().cpu()).abs().mean(0)
+    top = float(error.max())
+    H, W = error.shape
+    panels = [(r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
+              (c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8), to_rgb8(error[None], top or 1.0)]
+    ramp = np.linspace(top or 1.0, 0.0, H, dtype=np.float32)[:, None].repeat(BAR_PX, 1)
+    bar = np.zeros((H, BAR_PX + BAR_LABEL_PX, 3), np.uint8)
+    bar[:, :BAR_PX] = to_rgb8(ramp[None], top or 1.0)
+    figure = np.zeros((TITLE_PX + H, 3 * W + bar.shape[1], 3), np.uint8)
+    figure[TITLE_PX:] = np.concatenate([*panels, bar], axis=1)
+    for n, title in enumerate((f"rendered {view}".strip(), "captured", "|error|")):
+        cv2.putText(figure, title, (n * W + 2, TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    for y, text in ((TITLE_PX + 9, f"{top:.2g}"), (TITLE_PX + H - 2, "0")):
+        cv2.putText(figure, text, (3 * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    return figure
 
 
 def _numpy(value) -> np.ndarray:
@@ -86,6 +110,38 @@ def top_view(density, bbox_min, bbox_max, up: str = "y", vmax: float | None = No
     return to_rgb8(project_along(density, bbox_min, bbox_max, up), vmax)
 
 
+def centroid_index(density) -> tuple[int, int, int]:
+    """The voxel (i, j, k) nearest the density's centre of mass (channels summed; the grid's
+    centre for an empty volume)."""
+    total = _numpy(density).sum(axis=0)
+    mass = float(total.sum())
+    if mass <= 0:
+        nz, ny, nx = total.shape
+        return nx // 2, ny // 2, nz // 2
+    k, j, i = (float((total.sum(axis=tuple(a for a in range(3) if a != ax)) * np.arange(n)).sum()) / mass
+               for ax, n in enumerate(total.shape))
+    return round(i), round(j), round(k)
+
+
+def slice_panels(scalar: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: Sequence[int], up: str = "y"
+                 ) -> list[tuple[np.ndarray, int, int, str]]:
+    """The three planes of a (nz, ny, nx) ``scalar`` through voxel ``index`` = (i, j, k), as
+    (image rows x cols, horizontal world axis, vertical world axis, title): the two vertical
+    planes with ``up`` upward, then the horizontal one seen from above."""
+    u = "xyz".index(up)
+    a, b = (w for w in range(3) if w != u)
+    centre = lo + (np.asarray(index) + 0.5) * voxel_size(lo, hi, scalar.shape)
+
+    def plane(h: int, v: int, fixed: int) -> np.ndarray:
+        cut = np.take(scalar, int(index[fixed]), axis=_AXES["xyz"[fixed]])
+        rows_first = _AXES["xyz"[v]] < _AXES["xyz"[h]]  # the array axes left keep their order
+        return cut if rows_first else cut.T
+
+    n = "xyz"
+    return [(plane(h, v, f), h, v, f"{n[h]}{n[v]} plane at {n[f]} = {centre[f]:.3g}")
+            for h, v, f in ((a, u, b), (b, u, a), (a, b, u))]
+
+
 def slices_figure(
     path: str | os.PathLike,
     density,
@@ -94,10 +150,12 @@ def slices_figure(
     index: Sequence[int] | None = None,
     channel: int | None = None,
     title: str = "",
+    up: str = "y",
 ) -> Path:
-    """PNG of the xy, xz and yz planes through voxel ``index`` = (i, j, k) (default: the
-    centre), world-unit axes, one shared colour bar. ``channel`` picks one colour channel;
-    default: their sum (total emission)."""
+    """PNG of three planes through voxel ``index`` = (i, j, k) (default: the density's centre
+    of mass, :func:`centroid_index`), the two vertical ones with world axis ``up`` upward
+    (:func:`slice_panels`), world-unit axes, one shared colour bar. ``channel`` picks one
+    colour channel; default: their sum (total emission)."""
     try:
         from matplotlib.figure import Figure
     except ImportError as err:
@@ -105,17 +163,12 @@ def slices_figure(
     vol = _numpy(density)
     scalar = vol.sum(axis=0) if channel is None else vol[channel]
     nz, ny, nx = scalar.shape
-    i, j, k = (nx // 2, ny // 2, nz // 2) if index is None else (int(v) for v in index)
+    i, j, k = centroid_index(scalar[None]) if index is None else (int(v) for v in index)
     if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
         raise ValueError(f"slices_figure: index {(i, j, k)} outside the grid (nx, ny, nz) = "
                          f"{(nx, ny, nz)}")
     lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
-    centre = lo + (np.array([i, j, k]) + 0.5) * voxel_size(lo, hi, scalar.shape)
-    panels = [  # (image rows x cols, horizontal axis, vertical axis, which plane)
-        (scalar[k], 0, 1, f"xy at z = {centre[2]:.3g}"),
-        (scalar[:, j, :], 0, 2, f"xz at y = {centre[1]:.3g}"),
-        (scalar[:, :, i], 1, 2, f"yz at x = {centre[0]:.3g}"),
-    ]
+    panels = slice_panels(scalar, lo, hi, (i, j, k), up)
     vmax = max(float(p[0].max()) for p in panels) or 1.0
     fig = Figure(figsize=(13, 4.2), dpi=100, layout="constrained")
     axes = fig.subplots(1, 3)
@@ -127,8 +180,8 @@ def slices_figure(
         ax.set_title(label)
     fig.colorbar(shown, ax=list(axes), shrink=0.9,
                  label="density" if channel is None else f"density, channel {channel}")
-    if title:
-        fig.suptitle(title)
+    where = "its centre of mass, voxel" if index is None else "voxel"
+    fig.suptitle(f"{title + ': ' if title else ''}density through {where} {(i, j, k)}")
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
@@ -397,16 +450,6 @@ def hull_masks(hull, grid, cams) -> torch.Tensor:
 
     indicator = torch.as_tensor(hull, device=cams.intrinsics.device).float()[None]
     return render_image(indicator, grid, cams)[:, 0].cpu() > 0
-
-
-def compare_images(rendered, captured, vmax: float = 1.0) -> np.ndarray:
-    """Held-out view figure (the paper's Fig. 7): rendered | captured | absolute error, images
-    (C, H, W) in [0, vmax]; the error is scaled to its own maximum. (H, 3 W, 3) uint8."""
-    r, c = _numpy(rendered), _numpy(captured)
-    if r.shape != c.shape:
-        raise ValueError(f"compare_images: rendered {r.shape} and captured {c.shape} differ")
-    error = np.abs(r - c).mean(axis=0, keepdims=True)
-    return np.concatenate([to_rgb8(r, vmax), to_rgb8(c, vmax), to_rgb8(error)], axis=1)
 
 
 def _orbit_renders(density, bbox_min, bbox_max, azimuths, elevation_deg, width, height, fov_deg,

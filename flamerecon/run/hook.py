@@ -18,7 +18,7 @@ from flamerecon.errors import Interrupted, ResumeError, SolveDiverged
 from flamerecon.evaluate.scores import render_scene_views, view_psnr
 from flamerecon.fit.build import Setup
 from flamerecon.fit.reconstruct import ResumePoint, SolveHook, Stage
-from flamerecon.outputs.figures import side_by_side, top_view
+from flamerecon.outputs.figures import heldout_figure, top_view
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
 from flamerecon.run.guard import SolveGuard, StopSolve, stop_signals
 from flamerecon.run.summary import cells_of
@@ -96,7 +96,8 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
     values = [view_psnr(img, s.scene, v) for img, v in zip(imgs, s.holdout)]
     writer.scalars(it, {"heldout_psnr": sum(values) / len(values)}, prefix=f"{root}eval")
     for img, v in zip(imgs, s.holdout):
-        writer.image(f"{root}heldout/{s.scene.views[v]}", side_by_side(img, s.scene.images[v]), it)
+        writer.image(f"{root}heldout/{s.scene.views[v]}", heldout_figure(img, s.scene.images[v], s.scene.views[v]),
+                     it, "HWC")
     writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
 
 

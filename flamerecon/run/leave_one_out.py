@@ -21,6 +21,7 @@ from flamerecon.fit.build import build
 from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import calibrated_scene, fit, warm_start
 from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.progress import Progress
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import Scene, SceneError, load_scene
 
@@ -51,6 +52,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     options = options_from_config(cfg)
     silhouette = options.silhouette.as_dict()
     rows = {}
+    folds = Progress("leave-one-out", len(views), unit="fold")
     for name in views:
         split = options.replace(holdout=(name, *[e for e in exclude if e != name]))
         fold, _ = calibrated_scene(scene, split, device)  # calibration.refine: this fold's cameras
@@ -65,6 +67,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
                    train=[scene.views[i] for i in setup.train])
         rows[name] = row
         write_renders(out_dir, image, scene, [v])
+        folds.step(f"{name} held out")
         if progress is not None:
             progress(name, row)
     mean = {k: sum(r[k] for r in rows.values()) / len(rows) for k in AVERAGED}

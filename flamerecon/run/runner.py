@@ -9,11 +9,14 @@
   jobs still run; :class:`FailureSummary` lists the failures at the end and exits with status 2.
 - An unexpected exception (a bug) is one line too, exit status 2, its traceback in ``FAILED``.
 - :class:`LockRunFolder` refuses a second run into a run folder in use.
+- A command refused before any work leaves no folder: the run (or sweep) folder it made holds
+  only what Hydra wrote there and is removed (:func:`discard_unused`), with the parents it made.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 import traceback
 from pathlib import Path
@@ -35,6 +38,32 @@ from flamerecon.run.checkpoint import CHECKPOINT_FILE
 from flamerecon.run.cli import one_line
 
 FAILED_FILE = "FAILED"
+#: what Hydra (and the lock) put into a run or sweep folder before the run does any work
+HYDRA_ENTRIES = frozenset({".hydra", "train.log", "multirun.yaml", ".lock"})
+#: run and sweep folders this process made (:class:`LockRunFolder`) -> the topmost folder made
+_MADE: dict[Path, Path] = {}
+
+
+def discard_unused(folder: str | Path | None = None) -> bool:
+    """Remove ``folder`` (default: every folder this process made for its run) where this
+    process made it and it holds nothing but :data:`HYDRA_ENTRIES`, with the parents made
+    along with it; returns whether anything was removed."""
+    removed = False
+    for made in [Path(folder).absolute()] if folder is not None else list(_MADE):
+        top = _MADE.get(made)
+        if top is None or not made.is_dir() or any(p.name not in HYDRA_ENTRIES for p in made.iterdir()):
+            continue
+        shutil.rmtree(made, ignore_errors=True)
+        del _MADE[made]
+        removed = True
+        for parent in made.parents:
+            if parent == top.parent:
+                break
+            try:
+                parent.rmdir()  # only an empty one
+            except OSError:
+                break
+    return removed
 
 
 def record_failure(run_dir: str | Path, message: str) -> Path | None:
@@ -100,11 +129,11 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
         print(f"flamerecon: error: {err}", file=sys.stderr)
         if isinstance(err, Interrupted):
             raise SystemExit(err.exit_code) from None
-        if not isinstance(err, RunFolderInUse):
+        unused = err.exit_code == 2 and not cfg.get("resume") and discard_unused(failed_in)
+        if not isinstance(err, RunFolderInUse) and not unused:
             record_failure(failure_folder(err, cfg, failed_in), str(err))
         if multirun:
             return None
-        print("flamerecon: (run again with debug=true for the traceback)", file=sys.stderr)
         raise SystemExit(err.exit_code) from None
     except KeyboardInterrupt:
         if debug:
@@ -158,7 +187,8 @@ class LockRunFolder(Callback):
     """Hydra callback: take the run folder's lock (the sweep folder's, for a multirun) before
     Hydra writes ``.hydra/`` into it, so that a second run into a folder in use is refused
     before it changes anything there (exit status 2). The folder's name is resolved once and
-    kept (``${now:...}`` would otherwise be read again)."""
+    kept (``${now:...}`` would otherwise be read again), and the folders it makes are recorded
+    for :func:`discard_unused`."""
 
     def __init__(self) -> None:
         self.held = None
@@ -171,11 +201,15 @@ class LockRunFolder(Callback):
         folder = str(OmegaConf.select(config, key))
         with read_write(config), open_dict(config):
             OmegaConf.update(config, key, folder)
+        path = Path(folder).absolute()
+        missing = [p for p in (path, *path.parents) if not p.exists()]
         try:
             self.held = acquire(folder)
         except FlameReconError as err:
             print(f"flamerecon: error: {err}", file=sys.stderr)
             raise SystemExit(err.exit_code) from None
+        if missing:
+            _MADE[path] = missing[-1]
 
     def _give_back(self) -> None:
         from flamerecon.run.lock import release

@@ -21,10 +21,18 @@ def summary_writer_class():
 
 
 class RunWriter:
-    """A SummaryWriter with the run's conventions (tags ``solve/*``, ``eval/*``, ``images/*``)."""
+    """A SummaryWriter with the run's conventions (tags ``solve/*``, ``eval/*``, ``images/*``),
+    opened at the first entry: a run refused before it logged anything leaves no events file."""
 
     def __init__(self, log_dir: str):
-        self.writer = summary_writer_class()(log_dir=log_dir)
+        self.log_dir = log_dir
+        self._writer = None
+
+    @property
+    def writer(self):
+        if self._writer is None:
+            self._writer = summary_writer_class()(log_dir=self.log_dir)
+        return self._writer
 
     def scalars(self, step: int, values: dict[str, float], prefix: str = "solve") -> None:
         for k, v in values.items():
@@ -39,5 +47,6 @@ class RunWriter:
         self.writer.add_hparams(clean, {f"hparam/{k}": v for k, v in metrics.items()}, run_name=".")
 
     def close(self) -> None:
-        self.writer.flush()
-        self.writer.close()
+        if self._writer is not None:
+            self._writer.flush()
+            self._writer.close()

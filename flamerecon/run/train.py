@@ -7,6 +7,7 @@ traceback); ``resume=RUN_DIR`` continues an interrupted run in its folder.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -50,14 +51,38 @@ hydra_main = hydra.main(version_base="1.3", config_path=str(config_dir()), confi
 
 
 def main() -> None:
-    """The console entry point: Hydra's own refusal of a command line (exit 1) becomes exit 2
-    with the one-line form after Hydra's message."""
+    """The console entry point. Hydra's refusal of a command line (an unknown key or group
+    option, a launcher not installed, bad syntax) is one line and exit status 2
+    (:func:`~flamerecon.run.command_line.refusal`), and leaves no folder behind
+    (:func:`~flamerecon.run.runner.discard_unused`). ``HYDRA_FULL_ERROR=1`` set by the user
+    keeps Hydra's own report."""
+    from hydra._internal.utils import get_args_parser
+    from hydra.errors import HydraException
+
+    from flamerecon.run.command_line import refusal
+    from flamerecon.run.runner import discard_unused
+
+    own = os.environ.get("HYDRA_FULL_ERROR") == "1"
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises its errors here instead of printing them
     try:
         hydra_main()
+    except HydraException as err:
+        if own:
+            raise
+        discard_unused()
+        overrides = get_args_parser().parse_known_args()[0].overrides
+        print(f"flamerecon: error: {refusal(err, overrides)}", file=sys.stderr)
+        raise SystemExit(2) from None
     except SystemExit as stop:
-        if stop.code == 1:  # Hydra refused the command line (unknown key or group, bad syntax)
+        if stop.code == 1:  # Hydra refused the command line in a way it did not raise
+            discard_unused()
             print("flamerecon: error: config: the command line was refused (Hydra's message "
                   "above); python train.py --help lists the config groups, --cfg job the keys",
                   file=sys.stderr)
             raise SystemExit(2) from None
+        if stop.code == 2:
+            discard_unused()
         raise
+    finally:
+        if not own:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
