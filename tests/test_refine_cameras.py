@@ -4,6 +4,7 @@ cameras, and a run with ``calibration.refine`` writing what it found."""
 
 from __future__ import annotations
 
+
 import functools
 import json
 import math
@@ -239,6 +240,9 @@ def test_the_rig_protocol_refines_every_camera_on_frames_that_are_not_scored(tmp
     _, holdout = scene.split(None)
     assert record["rig"] and sorted(record["cameras"]) == sorted(scene.views)
     assert not torch.equal(refined.cameras.extrinsics[holdout], scene.cameras.extrinsics[holdout])
+    other_fold = options.replace(holdout=(scene.views[0],))
+    _, again = calibrated_scene(scene, other_fold, torch.device("cpu"))  # one rig calibration for every fold
+    assert (again["source"], again["file"]) == ("read", record["file"])
     scored = fr.load_scene({**scene.meta["config"], "frame": 6})
     with pytest.raises(ConfigError, match=r"calibration\.rig: frame 6 is reconstructed"):
         calibrated_scene(scored, options, torch.device("cpu"))
