@@ -4,7 +4,6 @@ cameras, and a run with ``calibration.refine`` writing what it found."""
 
 from __future__ import annotations
 
-
 import functools
 import json
 import math
