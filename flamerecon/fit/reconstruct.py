@@ -34,6 +34,7 @@ from flamerecon.fit.build import (
     split_views,
 )
 from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
+from flamerecon.fit.checks import density_fault
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import level_grids, level_iters
 from flamerecon.fit.options import ReconstructionOptions
@@ -488,6 +489,9 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     if init is not None and init.shape[0] != scene.images.shape[1]:
         raise wrong_value("reconstruct.init", init, f"(C, nz, ny, nx) with C = {scene.images.shape[1]}, the "
                           "scene's channels")
+    fault = None if init is None else density_fault(init, math.dist(scene.bbox_min, scene.bbox_max))
+    if fault is not None:
+        raise ArgumentError(f"reconstruct.init: {describe(init)} {fault}")
     options = (options or ReconstructionOptions()).check()
     hook = hook or SolveHook()
     check_solver_name(options.solver.name)
@@ -495,20 +499,20 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     if options.threads:
         torch.set_num_threads(int(options.threads))
     device = resolve_device(options.device if device is None else str(device))
-    timing: dict = {}
-    clock = time.perf_counter()
-    scene, calibration = calibrated_scene(scene, options, device)
-    if calibration is not None:
-        timing["calibration"] = time.perf_counter() - clock
-    fine = scene_grid(options.grid, scene)
+    fine = scene_grid(options.grid, scene)  # camera refinement keeps the box
     grids = level_grids(list(options.grid.levels) or None, fine)
     level_iters(options.grid.level_iters, len(grids))  # refuse a bad budget before any solve
     resumed = hook.resume()
     first = 0 if resumed is None else min(resumed.level, len(grids))
     records: list[dict] = [] if resumed is None else list(resumed.carry.get("level_records", []))
     volume = None if resumed is not None else init
-    if volume is None and resumed is None and options.init:
+    if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, grids[0] if grids else fine, int(scene.images.shape[1]))
+    timing: dict = {}
+    clock = time.perf_counter()
+    scene, calibration = calibrated_scene(scene, options, device)
+    if calibration is not None:
+        timing["calibration"] = time.perf_counter() - clock
     clock = time.perf_counter()
     volume = coarse_levels(scene, options, device, volume, first, hook, records)
     if grids:
