@@ -19,6 +19,7 @@ import torch
 from flamerecon.arguments import describe, fields, instance, tensor, value, wrong_value
 from flamerecon.device import resolve_device
 from flamerecon.errors import ArgumentError, ConfigError
+from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import score
 from flamerecon.fit.build import (
     BUILD_OPTIONS,
@@ -192,10 +193,13 @@ class Reconstruction:
 
     def score(self) -> dict:
         """Metrics of the density: held-out and training PSNR/SSIM (see
-        :func:`flamerecon.evaluate.scores.score`), volume errors when the scene has a truth."""
+        :func:`flamerecon.evaluate.scores.score`), volume errors when the scene has a truth,
+        ``warnings`` (:func:`~flamerecon.evaluate.result_warnings.result_warnings`)."""
         photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
         metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
                            self.setup.step, self.options.silhouette.as_dict(), photometry)
+        metrics["warnings"] = result_warnings(self.scene, self.density, metrics, self.setup.train + self.setup.holdout,
+                                              *penalty_of(self.options.solver.as_dict(), self.fit.l1))
         return metrics
 
 
