@@ -41,6 +41,7 @@ from flamerecon.fit.levels import level_grids, level_iters
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.refine_cameras import CalibrationFrame, correction_report, refine, with_cameras
 from flamerecon.fit.weight_selection import select_weights
+from flamerecon.fit.workload import check_workload
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
@@ -512,6 +513,7 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     volume = None if resumed is not None else init
     if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, grids[0] if grids else fine, int(scene.images.shape[1]))
+    check_workload(scene, options, fine, device)
     timing: dict = {}
     clock = time.perf_counter()
     scene, calibration = calibrated_scene(scene, options, device)
