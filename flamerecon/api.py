@@ -110,7 +110,9 @@ def render(volume: torch.Tensor, grid: VoxelGrid, cameras: PinholeCamera, step: 
 def score(result: Reconstruction | Run) -> dict:
     """The metrics of a :class:`~flamerecon.fit.reconstruct.Reconstruction` or a loaded
     :class:`~flamerecon.run.folder.Run`: held-out and training PSNR / SSIM (with the all-black
-    floor), inside the silhouettes, and volume errors when the scene has a truth."""
+    floor), inside the silhouettes, volume errors when the scene has a truth, and ``warnings``:
+    ``[{"code", "message"}]`` for a result that means little (an empty density, saturated views,
+    an all-black held-out view, see :mod:`flamerecon.evaluate.result_warnings`)."""
     instance("score.result", result, (Reconstruction, Run), "a Reconstruction (reconstruct) or a Run (load_run)")
     tensor("score.result.density", result.density, "(C, nz, ny, nx) on the result's grid",
            shape=(None, *result.grid.shape), finite=True)

@@ -6,6 +6,7 @@ rendered view, and at the capture's native resolution (the scene loaded again wi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from flamerecon.evaluate.metrics import (
     ssim,
     volume_errors,
 )
+from flamerecon.evaluate.result_warnings import BLACK_VIEW, is_black
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import apply_gain_offset
@@ -116,6 +118,8 @@ def native_scores(scene_cfg: Mapping, volume: torch.Tensor, grid: VoxelGrid, nam
             "ssim_native": ssim(img, captured),
             "psnr_black_native": psnr(torch.zeros_like(captured), captured),
         }
+        if is_black(captured):
+            undefined(out[scene.views[v]])
     H, W = scene.image_size
     return out, (W, H)
 
@@ -157,7 +161,15 @@ def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
             out[scene.views[v]].update(masked_scores(img, captured, masks[k]))
         if captured_masks is not None:
             out[scene.views[v]]["detail_silhouette"] = detail_correlation(img, captured, sigma, captured_masks[k])
+        if is_black(captured):
+            undefined(out[scene.views[v]])
     return out
+
+
+def undefined(scores: dict) -> None:
+    """A black view's scores: its PSNRs are undefined (NaN; null in metrics.json), with the
+    reason beside them as ``psnr_undefined``."""
+    scores.update({k: math.nan for k in scores if k.startswith("psnr")}, psnr_undefined=BLACK_VIEW)
 
 
 def score_rendered(rendered: torch.Tensor, scene: Scene, views: list[int],

@@ -19,6 +19,7 @@ from flamerecon.fit.checks import (
     check_scene,
     check_silhouettes,
     choose_backend,
+    density_fault,
     explain_empty_hull,
     memory_budget,
 )
@@ -28,7 +29,7 @@ from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.hull import hull_footprint, visual_hull
 from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.operators.projector import camera_rays, make_operator
-from flamerecon.outputs.export import load_density
+from flamerecon.outputs.export import density_path, load_density
 from flamerecon.rules import integer, list_of, number
 from flamerecon.scenes import Scene
 from flamerecon.solvers import SOLVERS, LinearOperator, Problem, Solver, make_solver, resolve_l1
@@ -185,11 +186,15 @@ def make_problem(options: SolverOptions, setup: Setup) -> tuple[Problem, Solver,
 
 def init_volume(path: str | Path, grid: VoxelGrid, channels: int | None = None) -> torch.Tensor:
     """The density (C, nz', ny', nx') of a finished run (``init=``), which must cover the box of
-    ``grid`` (its resolution may differ) and have ``channels`` channels (when given)."""
+    ``grid`` (its resolution may differ), have ``channels`` channels (when given) and values a
+    solve can start from (:func:`~flamerecon.fit.checks.density_fault`)."""
     try:
         saved = load_density(path)
     except FileNotFoundError as err:
         raise ConfigError(f"init: {err}; give a finished run's folder or its density.npz") from None
+    fault = density_fault(saved.density, float(np.linalg.norm(saved.bbox_max - saved.bbox_min)))
+    if fault is not None:
+        raise ConfigError(f"init: {density_path(path)}: its density {fault}")
     if channels is not None and saved.density.shape[0] != channels:
         raise ConfigError(
             f"init: {path} holds {saved.density.shape[0]} channel(s), this run's images {channels}; "

@@ -32,6 +32,9 @@ MEMORY_HEADROOM = 0.8
 DENSE_BYTES_PER_VOXEL = 68
 #: pixels per image side tested for whether a camera sees the box.
 VISIBILITY_LATTICE = 64
+#: the brightest line integral a warm-start density may reach, in image units (images are in
+#: [0, 1]): its peak times the box diagonal beyond this is no density of a capture (1e30, units mixed up)
+ABSURD_INTEGRAL = 1e3
 
 
 def _where(scene: Scene) -> str:
@@ -91,6 +94,25 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
             f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; "
             "check its world_to_camera (pose, axis convention) or set grid.bbox"
         )
+
+
+def density_fault(density: np.ndarray | torch.Tensor, diagonal: float) -> str | None:
+    """What makes ``density`` (C, nz, ny, nx) unusable as a warm start on a box of ``diagonal``
+    world units (NaN/Inf, negative values, a peak whose line integrals no image in [0, 1] could
+    hold, see :data:`ABSURD_INTEGRAL`), or None when it can start a solve."""
+    d = torch.as_tensor(density)
+    bad = int((~torch.isfinite(d)).sum())
+    if bad:
+        return f"holds {bad} NaN/Inf values; warm start from a run that finished, not one that diverged"
+    negative = int((d < 0).sum())
+    if negative:
+        return (f"holds {negative} negative values (min {float(d.min()):.3g}) where an emission density is >= 0; "
+                "warm start from a nonnegative solver's run (solver=cgls needs solver.nonneg=true)")
+    peak = float(d.max()) if d.numel() else 0.0
+    if peak * diagonal > ABSURD_INTEGRAL:
+        return (f"peaks at {peak:.3g}: a ray through the box would integrate to about {peak * diagonal:.3g}, "
+                "against images in [0, 1]; it is no density of this capture")
+    return None
 
 
 def sees_box(cams: PinholeCamera, grid: VoxelGrid) -> torch.Tensor:

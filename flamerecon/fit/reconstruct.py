@@ -19,6 +19,7 @@ import torch
 from flamerecon.arguments import describe, fields, instance, tensor, value, wrong_value
 from flamerecon.device import resolve_device
 from flamerecon.errors import ArgumentError, ConfigError
+from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import score
 from flamerecon.fit.build import (
     BUILD_OPTIONS,
@@ -34,11 +35,13 @@ from flamerecon.fit.build import (
     split_views,
 )
 from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
+from flamerecon.fit.checks import density_fault
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import level_grids, level_iters
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.refine_cameras import CalibrationFrame, correction_report, refine, with_cameras
 from flamerecon.fit.weight_selection import select_weights
+from flamerecon.fit.workload import check_workload
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
@@ -191,10 +194,13 @@ class Reconstruction:
 
     def score(self) -> dict:
         """Metrics of the density: held-out and training PSNR/SSIM (see
-        :func:`flamerecon.evaluate.scores.score`), volume errors when the scene has a truth."""
+        :func:`flamerecon.evaluate.scores.score`), volume errors when the scene has a truth,
+        ``warnings`` (:func:`~flamerecon.evaluate.result_warnings.result_warnings`)."""
         photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
         metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
                            self.setup.step, self.options.silhouette.as_dict(), photometry)
+        metrics["warnings"] = result_warnings(self.scene, self.density, metrics, self.setup.train + self.setup.holdout,
+                                              *penalty_of(self.options.solver.as_dict(), self.fit.l1))
         return metrics
 
 
@@ -488,6 +494,9 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     if init is not None and init.shape[0] != scene.images.shape[1]:
         raise wrong_value("reconstruct.init", init, f"(C, nz, ny, nx) with C = {scene.images.shape[1]}, the "
                           "scene's channels")
+    fault = None if init is None else density_fault(init, math.dist(scene.bbox_min, scene.bbox_max))
+    if fault is not None:
+        raise ArgumentError(f"reconstruct.init: {describe(init)} {fault}")
     options = (options or ReconstructionOptions()).check()
     hook = hook or SolveHook()
     check_solver_name(options.solver.name)
@@ -495,20 +504,21 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     if options.threads:
         torch.set_num_threads(int(options.threads))
     device = resolve_device(options.device if device is None else str(device))
-    timing: dict = {}
-    clock = time.perf_counter()
-    scene, calibration = calibrated_scene(scene, options, device)
-    if calibration is not None:
-        timing["calibration"] = time.perf_counter() - clock
-    fine = scene_grid(options.grid, scene)
+    fine = scene_grid(options.grid, scene)  # camera refinement keeps the box
     grids = level_grids(list(options.grid.levels) or None, fine)
     level_iters(options.grid.level_iters, len(grids))  # refuse a bad budget before any solve
     resumed = hook.resume()
     first = 0 if resumed is None else min(resumed.level, len(grids))
     records: list[dict] = [] if resumed is None else list(resumed.carry.get("level_records", []))
     volume = None if resumed is not None else init
-    if volume is None and resumed is None and options.init:
+    if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, grids[0] if grids else fine, int(scene.images.shape[1]))
+    check_workload(scene, options, fine, device)
+    timing: dict = {}
+    clock = time.perf_counter()
+    scene, calibration = calibrated_scene(scene, options, device)
+    if calibration is not None:
+        timing["calibration"] = time.perf_counter() - clock
     clock = time.perf_counter()
     volume = coarse_levels(scene, options, device, volume, first, hook, records)
     if grids:

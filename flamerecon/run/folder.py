@@ -17,6 +17,7 @@ import torch
 from flamerecon.arguments import fields, instance, tensor, value
 from flamerecon.device import resolve_device
 from flamerecon.errors import ConfigError, RunFolderError
+from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import native_scores, score, write_renders
 from flamerecon.fit.build import scene_grid, split_views
 from flamerecon.fit.checks import check_density_fits
@@ -48,12 +49,14 @@ def cameras_record(scene: Scene, train: list[int],
 
 def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
            step: float, silhouette: dict, photometry: dict[str, tuple[float, float]] | None = None,
-           native_scene: Mapping | None = None, calibration: dict | None = None) -> tuple[dict, torch.Tensor]:
+           native_scene: Mapping | None = None, calibration: dict | None = None, *,
+           penalty: tuple[float, float | None]) -> tuple[dict, torch.Tensor]:
     """metrics.json's scores of a density (C, nz, ny, nx) and the held-out renders (V, C, H, W).
     With ``native_scene`` (the scene's options) the held-out views are also scored at the
     capture's native resolution (when the run works below it). ``calibration`` (see
     :func:`~flamerecon.fit.reconstruct.calibrated_scene`) is recorded with
-    ``train_psnr_after``, this density's training PSNR."""
+    ``train_psnr_after``, this density's training PSNR. ``warnings``: see
+    :func:`~flamerecon.evaluate.result_warnings.result_warnings` (``penalty``: its L1 weights)."""
     metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
     H, W = scene.image_size
     metrics["resolution"] = {"working": [W, H]}
@@ -66,6 +69,7 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
             metrics["resolution"]["native"] = list(size)
     if calibration:
         metrics["calibration"] = {**calibration, "train_psnr_after": mean_of(metrics["train"], "psnr")}
+    metrics["warnings"] = result_warnings(scene, volume, metrics, train + holdout, *penalty)
     return metrics, held_imgs
 
 
@@ -115,7 +119,8 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
     )
     write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train, per_view)})
     metrics, held_imgs = scores(scene, volume, setup.grid, setup.train, setup.holdout, setup.step,
-                                options.silhouette.as_dict(), per_view, calibration=rec.calibration)
+                                options.silhouette.as_dict(), per_view, calibration=rec.calibration,
+                                penalty=penalty_of(options.solver.as_dict(), rec.fit.l1))
     metrics["solver"] = info
     write_scores(run_dir, metrics, held_imgs, scene, setup.holdout)
     for name, values in (rec.calibration or {}).get("cameras", {}).items():
@@ -217,7 +222,8 @@ class Run:
     def scores(self, native: bool = False) -> tuple[dict, torch.Tensor]:
         return scores(self.scene, self.density, self.grid, self.train, self.holdout,
                       float(self.options.projector.step), self.options.silhouette.as_dict(),
-                      self.photometry, self.scene_options if native else None, self.calibration)
+                      self.photometry, self.scene_options if native else None, self.calibration,
+                      penalty=penalty_of(self.options.solver.as_dict(), self.solver.get("l1", 0.0)))
 
 
 def load_run(run_dir: str | Path, device: str = "auto") -> Run:

@@ -18,6 +18,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from flamerecon.errors import ConfigError, FlameReconError
+from flamerecon.evaluate.result_warnings import penalty_of
 from flamerecon.fit.joint_frames import (
     JointFrame,
     JointFramesOptions,
@@ -94,13 +95,15 @@ def run_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> di
     try:
         rec = reconstruct_frames(scenes, options, joint, LoggingHook(writer), device)
         rec.record["frames"] = [numbers[0], numbers[-1]]
-        combined: dict = {"heldout": {}, "train": {}, "frames": {}}
+        combined: dict = {"heldout": {}, "train": {}, "frames": {}, "warnings": []}
         for t, fcfg, frame in zip(numbers, configs, rec.frames):
             key = f"{t:06d}"
             combined["frames"][key] = write_frame(fcfg, run_dir / FRAMES_FOLDER / key, frame, rec.result, rec.record)
             for part in ("heldout", "train"):
                 for view, values in combined["frames"][key][part].items():
                     combined[part][f"{key}/{view}"] = values
+            combined["warnings"] += [{**w, "message": f"frame {t}: {w['message']}"}
+                                     for w in combined["frames"][key]["warnings"]]
             writer.scalars(t, {"heldout_psnr": float(np.mean(
                 [v["psnr"] for v in combined["frames"][key]["heldout"].values()] or [np.nan]))},
                 prefix="eval/frame")
@@ -132,7 +135,8 @@ def write_frame(cfg: DictConfig, folder: Path, frame: JointFrame, result: JointR
                  solver=json.dumps(info))
     write_json_atomic(folder / "cameras.json", {"cameras": cameras_record(scene, setup.train)})
     metrics, held_imgs = scores(scene, volume, setup.grid, setup.train, setup.holdout, setup.step,
-                                options.silhouette.as_dict(), calibration=frame.calibration)
+                                options.silhouette.as_dict(), calibration=frame.calibration,
+                                penalty=penalty_of(options.solver.as_dict(), frame.l1))
     metrics["solver"] = info
     write_scores(folder, metrics, held_imgs, scene, setup.holdout)
     return metrics

@@ -10,6 +10,7 @@ adapters for the scripts and tools that hold a Hydra config (leave-one-out, join
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -41,6 +42,8 @@ from flamerecon.run.summary import flat_metrics, summary_table
 from flamerecon.run.tensorboard import RunWriter
 from flamerecon.scenes import Scene, load_scene
 from flamerecon.solvers import Problem, Solver, SolveResult
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Photometry", "Setup", "calibrated_scene", "cameras_record", "choose_weights", "evaluate",
            "flat_metrics", "make_problem", "mean_of", "options_from_config", "prepare", "reconstruct", "refine_options",
@@ -92,7 +95,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     if cfg.scene.get("frames") is not None:  # consecutive frames solved jointly (time as a prior)
         from flamerecon.run.joint_frames import run_frames
 
-        return run_frames(cfg, run_dir, resume)
+        return logged(run_frames(cfg, run_dir, resume))
     options = options_from_config(cfg)
     core.check_solver_name(options.solver.name)
     run_dir, device = start_run(cfg, run_dir)
@@ -127,6 +130,13 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         timing["export"] = time.perf_counter() - clock
     metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
     write_json_atomic(run_dir / "metrics.json", metrics)
+    return logged(metrics)
+
+
+def logged(metrics: dict) -> dict:
+    """``metrics``, its ``warnings`` logged (WARNING, one line each)."""
+    for w in metrics["warnings"]:
+        log.warning("%s: %s", w["code"], w["message"])
     return metrics
 
 

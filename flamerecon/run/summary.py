@@ -10,17 +10,15 @@ def summary_table(metrics: dict) -> str:
     """The short table printed at the end of a run."""
     s = metrics["solver"]
     rows = [
-        ("held-out PSNR [dB]", (f"{mean_of(metrics['heldout'], 'psnr'):.2f}  (black image: "
-                               f"{mean_of(metrics['heldout'], 'psnr_black'):.2f})")),
+        ("held-out PSNR [dB]", psnr_text(metrics["heldout"], "psnr", "psnr_black")),
         ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
-        ("  appearance-aligned [dB]", (f"{mean_of(metrics['heldout'], 'psnr_aligned'):.2f}  "
-                                      "(gain fitted on the left half, PSNR of the right half)")),
+        ("  appearance-aligned [dB]", psnr_text(metrics["heldout"], "psnr_aligned", None,
+                                                "gain fitted on the left half, PSNR of the right half")),
     ]
     held = list(metrics["heldout"].values())
     if held and "psnr_silhouette" in held[0]:
-        rows.append(("  inside silhouettes [dB]", (
-            f"{mean_of(metrics['heldout'], 'psnr_silhouette'):.2f}  "
-            f"(black image: {mean_of(metrics['heldout'], 'psnr_black_silhouette'):.2f})")))
+        rows.append(("  inside silhouettes [dB]", psnr_text(metrics["heldout"], "psnr_silhouette",
+                                                            "psnr_black_silhouette")))
     if held and "detail" in held[0]:
         inside = (f", inside the captured silhouettes {mean_of(metrics['heldout'], 'detail_silhouette'):.3f}"
                   if "detail_silhouette" in held[0] else "")
@@ -29,9 +27,7 @@ def summary_table(metrics: dict) -> str:
     if held and "psnr_native" in held[0]:
         W, H = metrics["resolution"]["native"]
         rows += [
-            (f"  native {W}x{H} PSNR [dB]", (
-                f"{mean_of(metrics['heldout'], 'psnr_native'):.2f}  "
-                f"(black image: {mean_of(metrics['heldout'], 'psnr_black_native'):.2f})")),
+            (f"  native {W}x{H} PSNR [dB]", psnr_text(metrics["heldout"], "psnr_native", "psnr_black_native")),
             (f"  native {W}x{H} SSIM", f"{mean_of(metrics['heldout'], 'ssim_native'):.4f}"),
         ]
     rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"
@@ -67,7 +63,28 @@ def summary_table(metrics: dict) -> str:
             f"{r['setup_seconds']:.2f} s setup + {r['seconds']:.2f} s solve"
             for r in s["levels"])))
     width = max(len(r[0]) for r in rows)
-    return "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+    return "\n".join([f"  {k:<{width}}  {v}" for k, v in rows] + warnings_block(metrics.get("warnings", [])))
+
+
+def psnr_text(per_view: dict, key: str, black: str | None, note: str = "") -> str:
+    """A PSNR's mean over the views where it is defined, with the all-black floor's (``black``)
+    and ``note``; ``undefined (held-out view is black)`` when no view has one."""
+    defined = {name: v for name, v in per_view.items() if "psnr_undefined" not in v}
+    if per_view and not defined:
+        return "undefined (held-out view is black)"
+    notes = [f"black image: {mean_of(defined, black):.2f}"] if black else []
+    notes += [note] if note else []
+    if len(defined) < len(per_view):
+        notes.append(f"{len(per_view) - len(defined)} black held-out view(s) left out: undefined")
+    return f"{mean_of(defined, key):.2f}" + (f"  ({'; '.join(notes)})" if notes else "")
+
+
+def warnings_block(warnings: list[dict]) -> list[str]:
+    """The summary's last lines: metrics.json's ``warnings``, one per line (none: no lines)."""
+    if not warnings:
+        return []
+    return [f"  WARNINGS ({len(warnings)}): the scores above may mean little"] + [
+        f"  ! {w['code']}: {w['message']}" for w in warnings]
 
 
 def calibration_source(record: dict) -> str:

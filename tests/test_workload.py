@@ -1,0 +1,108 @@
+"""A run says what it will cost before the work (issue 20: huge images on a tiny grid ran
+silently past three minutes): one INFO line with its rays, voxels and memory, a WARNING when
+the estimated time is long, and a one-line refusal (exit status 2) naming the setting to change
+when the memory it needs is clearly not there (a grid too large alone keeps its own message,
+see test_errors). Huge configurations are tried without their
+work: the free memory and the clock are monkeypatched, a huge image is a view of one value."""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import replace
+
+import pytest
+import torch
+from kornia.geometry.camera import PinholeCamera
+
+from flamerecon.fit import checks, workload
+from flamerecon.fit import reconstruct as core
+from flamerecon.fit.options import ReconstructionOptions
+from flamerecon.fit.reconstruct import SolveHook
+from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.run.runner import run_task
+from tests.helpers import tiny_cfg, tiny_synthetic
+
+ERROR = "flamerecon: error: "
+MiB = 2**20
+
+
+def free(n_bytes):
+    return lambda monkeypatch: monkeypatch.setattr(checks, "available_bytes", lambda device: n_bytes)
+
+
+def slow_clock(monkeypatch):
+    monkeypatch.setattr(workload, "ASSEMBLY_SECONDS", 1e-2)
+
+
+def nothing(monkeypatch):
+    pass
+
+
+REFUSED = {  # case: (overrides, patch, message)
+    "projector.max_memory_gb below what the images need": (["projector.max_memory_gb=3e-4"], nothing, (
+        r"^scene\.downscale: 5 views of 48x36 px give \d.* rays through the box, which need about .* KiB and "
+        r"a \d+x16x\d+ grid needs .*, in all .* KiB, but 314\.6 KiB is available on cpu; .*scene\.downscale.*"
+        r"grid\.resolution.*projector\.max_memory_gb$")),
+    "little memory free": ([], free(200_000), r"^scene\.downscale: .* but 156\.2 KiB is available on cpu"),
+    "a large grid on small images, together too much": (["grid.resolution=64", "projector.max_memory_gb=0.0083"], nothing,
+                                     (r"^grid\.resolution: a 43x64x43 grid needs about .* MiB for its dense arrays "
+                                     r"and 5 views of 48x36 px give")),
+}
+
+
+@pytest.mark.parametrize("case", list(REFUSED))
+def test_what_clearly_does_not_fit_is_refused_before_the_work(case, tmp_path, capsys, monkeypatch):
+    overrides, patch, message = REFUSED[case]
+    patch(monkeypatch)
+    monkeypatch.setattr(core, "calibrated_scene", lambda *a: pytest.fail("worked before the estimate"))
+    with pytest.raises(SystemExit) as stop:
+        run_task(tiny_cfg(*overrides), tmp_path)
+    lines = [line[len(ERROR):] for line in capsys.readouterr().err.splitlines() if line.startswith(ERROR)]
+    assert stop.value.code == 2 and len(lines) == 1 and re.search(message, lines[0]), lines
+
+
+TOLD = {  # case: (patch, log level, message)
+    "an ordinary run": (nothing, logging.INFO, (r"^estimate: \d.* rays, \d.* voxels, .* ray samples per pass: "
+                                               r"about .* of memory and \d+ s for 61 passes on cpu$")),
+    "a long one": (slow_clock, logging.WARNING, (r"^estimate: .* and \d.* (min|h) for 61 passes on cpu, a long run; "
+                                                r"a larger scene\.downscale")),
+}
+
+
+@pytest.mark.parametrize("case", list(TOLD))
+def test_the_estimate_is_told_at_the_start(case, monkeypatch, caplog):
+    patch, level, message = TOLD[case]
+    patch(monkeypatch)
+    monkeypatch.setattr(SolveHook, "solve", lambda *a, **k: pytest.fail("solved"))
+    caplog.set_level(logging.INFO, logger="flamerecon.fit.workload")
+    with pytest.raises(pytest.fail.Exception, match="solved"):
+        core.reconstruct(tiny_synthetic(), ReconstructionOptions.from_dict(
+            {"grid": {"resolution": 16}, "device": "cpu", "solver": {"name": "fista", "max_iters": 30}}))
+    told = [r for r in caplog.records if r.name == "flamerecon.fit.workload"]
+    assert len(told) == 1 and told[0].levelno == level and re.search(message, told[0].getMessage()), told
+
+
+def huge(scene, factor: int):
+    """``scene`` with images ``factor`` times larger per side, every pixel one stored value."""
+    B, C, H, W = scene.images.shape
+    K = scene.cameras.intrinsics.clone()
+    K[:, :2, :3] *= factor
+    cams = PinholeCamera(K, scene.cameras.extrinsics, scene.cameras.height * factor, scene.cameras.width * factor)
+    return replace(scene, cameras=cams, images=torch.zeros(1, 1, 1, 1).expand(B, C, H * factor, W * factor),
+                   truth=None, truth_grid=None)
+
+
+@pytest.mark.parametrize(("free_bytes", "refused"), [(64 * 2**30, False), (2 * 2**30, True)])
+def test_huge_images_on_a_tiny_grid(free_bytes, refused, monkeypatch, caplog):
+    scene = huge(tiny_synthetic(), 100)  # 5 views of 4800x3600 px
+    options = ReconstructionOptions.from_dict({"device": "cpu", "solver": {"name": "fista", "max_iters": 100}})
+    grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 8)
+    free(free_bytes)(monkeypatch)
+    if refused:
+        with pytest.raises(checks.MemoryBudgetError, match=r"^scene\.downscale: 5 views of 4800x3600 px give"):
+            workload.check_workload(scene, options, grid, torch.device("cpu"))
+        return
+    found = workload.check_workload(scene, options, grid, torch.device("cpu"))
+    assert found.rays > 10**7 and found.voxels < 1000 and found.seconds > workload.LONG_SECONDS
+    assert "a long run" in caplog.text
