@@ -35,11 +35,10 @@ BYTES_PER_RAY = 48
 BYTES_PER_RAY_CHANNEL = 24
 #: seconds per ray sample (and channel) on two busy CPU cores, measured on the synthetic preset
 #: and a 16^3 march: assembling the operator; one pass (forward or adjoint) of the assembled
-#: operator per channel; of the matrix-free one. CUDA: :data:`CUDA_SPEEDUP` times faster. Rough.
+#: operator per channel; of the matrix-free one. Rough; no time is estimated on CUDA (not measured).
 ASSEMBLY_SECONDS = 1.5e-7
 ASSEMBLED_PASS_SECONDS = 2.5e-10
 MATRIX_FREE_PASS_SECONDS = 7e-8
-CUDA_SPEEDUP = 50.0
 #: an estimated time from which the estimate is a WARNING, not an INFO line
 LONG_SECONDS = 300.0
 
@@ -52,16 +51,16 @@ class Workload:
     passes: int  # forward and adjoint passes of the solve, and one to score
     ray_bytes: int
     voxel_bytes: int
-    seconds: float
+    seconds: float | None  # None: not estimated (CUDA)
 
     @property
     def bytes(self) -> int:
         return self.ray_bytes + self.voxel_bytes
 
     def __str__(self) -> str:
+        time = "time not estimated" if self.seconds is None else f"{duration(self.seconds)}"
         return (f"{self.rays:.3g} rays, {self.voxels:.3g} voxels, {self.samples:.3g} ray samples per pass: "
-                f"about {format_bytes(self.bytes)} of memory and {duration(self.seconds)} for "
-                f"{self.passes} passes")
+                f"about {format_bytes(self.bytes)} of memory and {time} for {self.passes} passes")
 
 
 def duration(seconds: float) -> str:
@@ -98,8 +97,8 @@ def workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid, devi
         budget is None or samples * NNZ_PER_SAMPLE * (16 + BYTES_PER_NNZ_PEAK) <= budget)
     seconds = (samples * (ASSEMBLY_SECONDS + C * passes * ASSEMBLED_PASS_SECONDS) if assembled
                else samples * C * passes * MATRIX_FREE_PASS_SECONDS)
-    speedup = CUDA_SPEEDUP if device.type == "cuda" else 1.0
-    return Workload(rays, grid.num_voxels, samples, passes, ray_bytes, voxel_bytes, seconds / speedup)
+    return Workload(rays, grid.num_voxels, samples, passes, ray_bytes, voxel_bytes,
+                    None if device.type == "cuda" else seconds)
 
 
 def check_workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid, device: torch.device) -> Workload:
@@ -121,7 +120,7 @@ def check_workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid
             f"{first} and {then.split(': ', 1)[1]}, in all {format_bytes(found.bytes)}, but "
             f"{format_bytes(budget)} is available on {device}; work on smaller images (a larger scene.downscale, "
             "or scene.width/height), a smaller grid.resolution, or allow more with projector.max_memory_gb")
-    if found.seconds >= LONG_SECONDS:
+    if found.seconds is not None and found.seconds >= LONG_SECONDS:
         log.warning("estimate: %s on %s, a long run; a larger scene.downscale, a smaller grid.resolution or fewer "
                     "solver.max_iters make it shorter", found, device)
     else:
