@@ -85,3 +85,8 @@ def test_the_calibration_options_are_documented():
         assert term in readme, term
     results = (REPO / "docs" / "results.md").read_text()
     assert "## Self-calibration protocols (strict, rig-calibrated)\n" in results
+
+
+def test_the_readme_is_a_manual_a_newcomer_reads_in_minutes():
+    lines = (REPO / "README.md").read_text().splitlines()
+    assert len(lines) < 250, f"README.md has {len(lines)} lines; measured results go to docs/results.md"
