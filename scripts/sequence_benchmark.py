@@ -11,6 +11,7 @@ Frames per minute counts everything a user waits for: loading the frame, the rec
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -38,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         base = compose_train(args.overrides)
         options = options_from_config(base)
         frames = list(range(args.frames[0], args.frames[1] + 1, args.every))
+        print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs at the start", flush=True)
         print(f"{len(frames)} frames, {'warm' if args.warm else 'cold'} starts, "
               f"{options.solver.name} on a {options.grid.resolution}-cell grid, calibration.refine="
               f"{options.calibration.refine}", flush=True)
@@ -64,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mean  {data[:, 0].mean():7.2f} {data[:, 1].mean():8.2f} {data[:, 2].mean():8.2f} "
               f"{data[:, 3].mean():6.0f} {data[:, 4].mean():12.2f} {data[:, 5].mean():7.4f} {data[:, 6].mean():7.3f} "
               f"{data[:, 7].mean():9.2f}")
-        print(f"{len(frames)} frames in {wall:.1f} s wall: {60 * len(frames) / wall:.2f} frames per minute")
+        print(f"{len(frames)} frames in {wall:.1f} s wall: {60 * len(frames) / wall:.2f} frames per minute "
+              f"(load average {os.getloadavg()[0]:.1f} at the end)")
 
     return run_script(run, args.debug)
 
