@@ -1,9 +1,8 @@
-"""A run says what it will cost before the work (issue 20: huge images on a tiny grid ran
-silently past three minutes): one INFO line with its rays, voxels and memory, a WARNING when
-the estimated time is long, and a one-line refusal (exit status 2) naming the setting to change
-when the memory it needs is clearly not there (a grid too large alone keeps its own message,
-see test_errors). Huge configurations are tried without their
-work: the free memory and the clock are monkeypatched, a huge image is a view of one value."""
+"""A run says what it will hold before the work (issue 20: huge images on a tiny grid ran
+silently past three minutes): one INFO line with its rays, voxels and memory, and a one-line
+refusal (exit status 2) naming the setting to change when the memory it needs is clearly not
+there (a grid too large alone keeps its own message, see test_errors). Huge configurations are
+tried without their work: the free memory is monkeypatched, a huge image is a view of one value."""
 
 from __future__ import annotations
 
@@ -29,10 +28,6 @@ MiB = 2**20
 
 def free(n_bytes):
     return lambda monkeypatch: monkeypatch.setattr(checks, "available_bytes", lambda device: n_bytes)
-
-
-def slow_clock(monkeypatch):
-    monkeypatch.setattr(workload, "ASSEMBLY_SECONDS", 1e-2)
 
 
 def nothing(monkeypatch):
@@ -64,9 +59,7 @@ def test_what_clearly_does_not_fit_is_refused_before_the_work(case, tmp_path, ca
 
 TOLD = {  # case: (patch, log level, message)
     "an ordinary run": (nothing, logging.INFO, (r"^estimate: \d.* rays, \d.* voxels, .* ray samples per pass: "
-                                               r"about .* of memory and \d+ s for 61 passes on cpu$")),
-    "a long one": (slow_clock, logging.WARNING, (r"^estimate: .* and \d.* (min|h) for 61 passes on cpu, a long run; "
-                                                r"a larger scene\.downscale")),
+                                               r"about .* of memory on cpu$")),
 }
 
 
@@ -99,10 +92,11 @@ def test_huge_images_on_a_tiny_grid(free_bytes, refused, monkeypatch, caplog):
     options = ReconstructionOptions.from_dict({"device": "cpu", "solver": {"name": "fista", "max_iters": 100}})
     grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 8)
     free(free_bytes)(monkeypatch)
+    caplog.set_level(logging.INFO, logger="flamerecon.fit.workload")
     if refused:
         with pytest.raises(checks.MemoryBudgetError, match=r"^scene\.downscale: 5 views of 4800x3600 px give"):
             workload.check_workload(scene, options, grid, torch.device("cpu"))
         return
     found = workload.check_workload(scene, options, grid, torch.device("cpu"))
-    assert found.rays > 10**7 and found.voxels < 1000 and found.seconds > workload.LONG_SECONDS
-    assert "a long run" in caplog.text
+    assert found.rays > 10**7 and found.voxels < 1000
+    assert f"estimate: {found} on cpu" in caplog.text
