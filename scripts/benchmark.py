@@ -32,6 +32,10 @@ import time
 import warnings
 from pathlib import Path
 
+import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
+
+# isort: split
+
 import numpy as np
 import torch
 

@@ -34,6 +34,10 @@ import sys
 import time
 from pathlib import Path
 
+import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
+
+# isort: split
+
 import numpy as np
 import torch
 from benchmark import CACHE, objectives

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 
 from flamerecon.arguments import describe, fields, instance, tensor, value, wrong_value
-from flamerecon.device import resolve_device
+from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.scores import score
 from flamerecon.fit.build import (
@@ -492,8 +492,7 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     hook = hook or SolveHook()
     check_solver_name(options.solver.name)
     torch.manual_seed(int(options.seed))
-    if options.threads:
-        torch.set_num_threads(int(options.threads))
+    set_threads(options.threads)
     device = resolve_device(options.device if device is None else str(device))
     timing: dict = {}
     clock = time.perf_counter()
