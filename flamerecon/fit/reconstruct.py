@@ -405,7 +405,8 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     for a scene that carries refined ones (a loaded run's: ``meta["calibrated_cameras"]``);
     held-out cameras keep their own. Returns the scene and the record for metrics.json's
     ``calibration`` (where the cameras came from, corrections per camera, the scores of this
-    frame's density solved with the capture's own cameras); ``(scene, None)`` when off."""
+    frame's density solved with the capture's own cameras, with cameras from a file only for
+    ``calibration.score_before``); ``(scene, None)`` when off."""
     refining = options.calibration
     if refining.refine == "none" and not refining.file:
         return scene, None
@@ -450,20 +451,22 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         found = CaptureCalibration(fitted.cameras, fitted.history, "fitted", None)
         initial = fitted.initial_volume
     if found.file is not None:
-        initial = this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
+        initial = (this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
+                   if refining.score_before else None)
     refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
                       meta={**scene.meta, "calibrated_cameras": scene.cameras})
-    before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
     report = correction_report(camera_subset(scene.cameras, refined_views),
                                camera_subset(refined.cameras, refined_views), grid)
     record = {
         "refine": refining.refine, "frames": list(refining.frames), "rig": bool(refining.rig), "source": found.source,
         "file": None if found.file is None else str(found.file), "rounds": found.history,
-        "seconds": time.perf_counter() - started,
-        "train_psnr_before": mean_of(before["train"], "psnr"),
-        "heldout_psnr_before": mean_of(before["heldout"], "psnr"),
         "cameras": {scene.views[v]: r for v, r in zip(refined_views, report)},
     }
+    if initial is not None:
+        before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
+        record.update(train_psnr_before=mean_of(before["train"], "psnr"),
+                      heldout_psnr_before=mean_of(before["heldout"], "psnr"))
+    record["seconds"] = time.perf_counter() - started
     return refined, record
 
 
