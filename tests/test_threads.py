@@ -49,19 +49,22 @@ def test_the_default_is_read_once_per_process(machine, monkeypatch):
 
 
 def test_the_thread_count_holds_when_torch_was_imported_first():
-    code = ("import torch; torch.set_num_threads(2); import flamerecon as fr; "
-            "from flamerecon.device import default_threads; "
+    code = ("import torch; import flamerecon as fr; from flamerecon.device import default_threads; "
             "s = fr.load_scene({'name': 'synthetic', 'width': 24, 'height': 18, 'n_cameras': 3, "
             "'phantom_resolution': 16}); "
             "o = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device='cpu', threads=1, "
             "solver=fr.SolverOptions(params={'max_iters': 5})); "
-            "fr.reconstruct(s, o); print(torch.get_num_threads()); "
-            "fr.reconstruct(s, o.replace(threads=None)); print(torch.get_num_threads(), default_threads())")
+            "steps = {'reconstruct': lambda o: fr.reconstruct(s, o), 'build': lambda o: fr.build(s, o), "
+            "'fit': lambda o: fr.fit(setup, o)}; "
+            "setup = fr.build(s, o)\n"
+            "for name, step in steps.items():\n"
+            "    torch.set_num_threads(3); step(o); print(name, torch.get_num_threads())\n"
+            "torch.set_num_threads(3); fr.reconstruct(s, o.replace(threads=None)); "
+            "print('null', torch.get_num_threads() == default_threads())")
     done = subprocess.run([sys.executable, "-c", code], check=False, cwd=REPO, env=repo_env(), capture_output=True,
                           text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    one, (default, rule) = done.stdout.split("\n")[0], done.stdout.split("\n")[1].split()
-    assert one == "1" and default == rule
+    assert done.stdout.split() == ["reconstruct", "1", "build", "1", "fit", "1", "null", "True"]
 
 
 def first_import(tree: ast.Module, roots: tuple[str, ...]) -> float:

@@ -231,8 +231,10 @@ def fit(setup: Setup, options: ReconstructionOptions, x0: torch.Tensor | None = 
     """Fit a density on ``setup``: weights chosen (``select``), the solve, photometry refits
     (``photometry.fit_gain``), ``debias``; each solve through ``hook`` at ``stage`` (default:
     the final grid without coarse levels), from ``x0`` (M, C) or 0. ``carry``: what a resumed
-    run needs of the stages before (see :class:`SolveHook`)."""
+    run needs of the stages before (see :class:`SolveHook`). Sets torch's thread count as
+    ``options.threads`` says."""
     x0 = check_fit(setup, options, x0, hook, stage, carry)
+    set_threads(options.threads)
     hook = hook or SolveHook()
     stage = stage or Stage(0, 0)
     carry = dict(carry or {})
