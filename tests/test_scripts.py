@@ -178,6 +178,7 @@ BAD = [
     ("sequence_benchmark", ["--frames", "5", "2"], r"argument --frames: FIRST 5 is after LAST 2"),
     ("sequence_benchmark", ["--every", "0"], r"argument --every: got '0'; give an integer >= 1"),
     ("sequence_benchmark", ["--frames", "-1", "2"], r"argument --frames: got '-1'; give an integer >= 0"),
+    ("first_run", ["--frames", "-1", "2"], r"argument --frames: got '-1'; give an integer >= 0"),
     ("compare_methods", ["--frames", "0", "--method", "a=", "--out", "FILE/c.json"],
      r"argument --out: .*file: is a file, not a folder"),
     ("compare_methods", ["--frames", "0", "--method", "a=", "--out", "RO/c.json"],
