@@ -11,8 +11,10 @@ active-set conjugate-gradient polish per column) whose duality gap certifies it:
 a hash of (A, P, lambda), so it is computed once per problem. Every method then runs on the
 identical problem; each iterate's objective is recomputed in float64 by :func:`objectives`
 (the one function, its time not counted) and the time to a relative gap (F - f_ref) / f_ref of
-1e-4 and 1e-6 is reported. Ours run on all columns at once (float32, after a warm-up solve);
-the peers (``pip install -e ".[bench]"``) run per column in float64 with their own iteration
+1e-4 and 1e-6 is reported. Ours run on all columns at once (float32, after a warm-up solve),
+on 1 thread, the peers' cores, and on ``--threads`` (default: the free cores, as ``threads:
+null``); our lead is printed for both, with the load average. The peers (single-threaded, ``pip
+install -e ".[bench]"``, a missing one skipped with a note) run per column in float64 with their own iteration
 or tolerance budget swept (cold runs, doubling) until the gap or the time budget is reached,
 each after a JIT warm-up on a small slice. Also: the memory bandwidth, the time of one A x and
 one A^T y against bytes(A) / bandwidth, and a fused A^T (A y - b) in one sweep (numba).
@@ -32,10 +34,14 @@ import time
 import warnings
 from pathlib import Path
 
+import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
+
+# isort: split
+
 import numpy as np
 import torch
 
-from flamerecon.device import resolve_device
+from flamerecon.device import resolve_device, set_threads
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.hull import visual_hull
 from flamerecon.geometry.silhouettes import silhouettes
@@ -49,6 +55,7 @@ from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
 
 TARGETS = (1e-4, 1e-6)
 OURS = ("fista", "newton_cg", "pqn")
+ONE = " (1 thread)"  # suffix of ours on one thread, the cores the peers run on
 PEERS = ("sklearn_lasso", "skglm_lasso", "celer_lasso", "sklearn_lassolars")
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "flamerecon" / "benchmark"
 
@@ -437,14 +444,15 @@ def swept_bracket(trace: list[tuple[float, float]], f_ref: float, target: float)
     return None
 
 
-def lead(methods: dict) -> dict | None:
-    """Our fastest method to 1e-4 against the fastest peer's bracket: the ratio at both ends."""
-    ours = [(m["seconds_to_1e-4"], name) for name, m in methods.items()
-            if name in OURS and m["seconds_to_1e-4"] is not None]
-    peers = [(m["bracket_1e-4"], name) for name, m in methods.items() if name not in OURS and m["bracket_1e-4"]]
-    if not ours or not peers:
+def lead(methods: dict, ours: tuple[str, ...] = OURS) -> dict | None:
+    """Our fastest method of ``ours`` to 1e-4 against the fastest peer's bracket: the ratio at
+    both ends."""
+    peers = [(m["bracket_1e-4"], name) for name, m in methods.items() if m["bracket_1e-4"]]
+    found = [(m["seconds_to_1e-4"], name) for name, m in methods.items()
+             if name in ours and m["seconds_to_1e-4"] is not None]
+    if not found or not peers:
         return None
-    (t, name), (bracket, peer) = min(ours), min(peers, key=lambda p: p[0][1])
+    (t, name), (bracket, peer) = min(found), min(peers, key=lambda p: p[0][1])
     return {"ours": name, "seconds": t, "peer": peer, "peer_bracket": bracket,
             "ratio": [bracket[0] / t, bracket[1] / t]}
 
@@ -487,12 +495,18 @@ def benchmark_grid(n: int, args, device: torch.device) -> dict:
     problem = Problem(A, P, lam, grid_shape=built["grid"].shape, voxel_index=built["voxel_index"])
     runs: dict[str, dict] = {}
     traces: dict[str, list] = {}
-    for name in args.solvers:
-        tracer = Tracer(A64_device, P64_device, lam)
-        runs[name] = run_ours(name, problem, tracer, args.budget)
-        traces[name] = tracer.trace
-        print(f"  {name}: {runs[name]['iterations']} iterations, {tracer.trace[-1][0]:.1f} s, "
-              f"rel. gap {(tracer.trace[-1][1] - f_ref) / f_ref:.1e}", flush=True)
+    threads = torch.get_num_threads()
+    counts = [(threads, ""), (1, ONE)] if threads > 1 and device.type == "cpu" else [(threads, "")]
+    for count, suffix in counts:
+        torch.set_num_threads(count)
+        for name in args.solvers:
+            tracer = Tracer(A64_device, P64_device, lam)
+            key = name + suffix
+            runs[key] = run_ours(name, problem, tracer, args.budget)
+            traces[key] = tracer.trace
+            print(f"  {key}: {runs[key]['iterations']} iterations, {tracer.trace[-1][0]:.1f} s, rel. gap "
+                  f"{(tracer.trace[-1][1] - f_ref) / f_ref:.1e}; load average {os.getloadavg()[0]:.2f}", flush=True)
+    torch.set_num_threads(threads)
     skipped = {}
     coordinate = [p for p in args.peers if p != "sklearn_lassolars"]
     A64 = P64 = A_csc = None
@@ -524,7 +538,8 @@ def benchmark_grid(n: int, args, device: torch.device) -> dict:
                 del traces[label]
                 continue
         print(f"  {label}: levels {runs[label]['levels']}, last {traces[label][-1][0]:.1f} s, "
-              f"rel. gap {(traces[label][-1][1] - f_ref) / f_ref:.1e}", flush=True)
+              f"rel. gap {(traces[label][-1][1] - f_ref) / f_ref:.1e}; load average "
+              f"{os.getloadavg()[0]:.2f}", flush=True)
 
     methods = {}
     for name, trace in traces.items():
@@ -547,7 +562,10 @@ def benchmark_grid(n: int, args, device: torch.device) -> dict:
         "load_average": os.getloadavg(), "bandwidth_GBps": bw / 1e9, "seconds_Ax": t_ax,
         "seconds_ATy": t_aty, "seconds_normal_pair": t_pair,
         "seconds_normal_fused": None if fused is None else fused[0],
-        "seconds_bound_each": bound, "methods": methods, "skipped": skipped, "lead_1e-4": lead(methods),
+        "seconds_bound_each": bound, "methods": methods, "skipped": skipped, "threads": threads,
+        # the same cores: ours on 1 thread (on all when that is 1, or on a GPU) against the peers
+        "lead_1e-4": lead(methods, tuple(n + ONE for n in args.solvers if n + ONE in methods) or OURS),
+        "lead_1e-4_threads": lead(methods, OURS),
     }
 
 
@@ -559,20 +577,23 @@ def print_table(report: dict) -> None:
           f"{report['reference_objective']:.10g} (certified to "
           f"{report['reference_certified_rel_gap']:.1e}), load average "
           f"{report['load_average'][0]:.2f}")
-    print(f"{'method':<20}{'s to 1e-4':>10}{'s to 1e-6':>10}{'best gap':>10}{'iters':>8}   "
+    print(f"{'method':<22}{'s to 1e-4':>10}{'s to 1e-6':>10}{'best gap':>10}{'iters':>8}   "
           f"(a peer's 1e-4 time lies after its last run above 1e-4)")
     for name, m in report["methods"].items():
         bracket = m.get("bracket_1e-4")
         after = f"   (after {bracket[0]:.2f})" if bracket and bracket[0] < bracket[1] else ""
-        print(f"{name:<20}{fmt(m['seconds_to_1e-4'])}{fmt(m['seconds_to_1e-6'])}"
+        print(f"{name:<22}{fmt(m['seconds_to_1e-4'])}{fmt(m['seconds_to_1e-6'])}"
               f"{m['best_rel_gap']:>10.1e}{m['iterations']:>8}{after}")
     for name, why in report["skipped"].items():
-        print(f"{name:<20}skipped: {why}")
-    won = report.get("lead_1e-4")
-    if won:
-        lo, hi = won["peer_bracket"]
-        print(f"to 1e-4: {won['ours']} {won['seconds']:.2f} s, the fastest peer {won['peer']} between "
-              f"{lo:.2f} and {hi:.2f} s: {won['ratio'][0]:.1f}x to {won['ratio'][1]:.1f}x sooner")
+        print(f"{name:<22}skipped: {why}")
+    same = report.get("lead_1e-4")
+    for where, won in (("on the peers' cores", same),
+                       (f"ours on {report.get('threads')} threads", report.get("lead_1e-4_threads"))):
+        if won and (where.startswith("on") or won != same):
+            lo, hi = won["peer_bracket"]
+            print(f"to 1e-4 {where}: {won['ours']} {won['seconds']:.2f} s, the fastest peer {won['peer']} between "
+                  f"{lo:.2f} and {hi:.2f} s: {won['ratio'][0]:.1f}x to {won['ratio'][1]:.1f}x sooner "
+                  f"(load average {report['load_average'][0]:.2f})")
 
 
 def check_args(args) -> None:
@@ -604,7 +625,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reference-iters", type=int, default=4000,
                         help="at most this many float64 pqn iterations before the reference's polish")
     parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads of ours' second run (default: the free cores); ours also run on 1")
     parser.add_argument("--out", type=output_file, default="benchmark.json", help="the report (JSON)")
     parser.add_argument("--dump", type=output_folder, default=str(CACHE),
                         help="folder for grid<N>/ A.npz, problem.npz, reference.npz (the cache)")
@@ -616,8 +638,7 @@ def run(args) -> None:
     check_args(args)
     device = resolve_device(args.device, "--device")
     args.device = device.type
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     machine = {"platform": platform.platform(), "processor": platform.processor(),
                "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                "torch": torch.__version__, "device": str(device),

@@ -15,6 +15,10 @@ from __future__ import annotations
 import math
 import sys
 
+import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
+
+# isort: split
+
 import kornia
 import torch
 

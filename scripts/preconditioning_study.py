@@ -34,10 +34,15 @@ import sys
 import time
 from pathlib import Path
 
+import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
+
+# isort: split
+
 import numpy as np
 import torch
 from benchmark import CACHE, objectives
 
+from flamerecon.device import set_threads
 from flamerecon.errors import ConfigError
 from flamerecon.operators import CsrOperator, norm_sq
 from flamerecon.run.cli import run_script, script_parser
@@ -199,15 +204,14 @@ def main(argv: list[str] | None = None) -> int:
                         default=["lipschitz", "sqs", "blend:0.1", "blend:0.3", "sqs/1.5", "sqs/2"])
     parser.add_argument("--iters", type=int, default=3000, help="at most, per variant")
     parser.add_argument("--every", type=int, default=10, help="objective every this many")
-    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: the free cores)")
     parser.add_argument("--dump", default=str(CACHE))
     args = parser.parse_args(argv)
     return run_script(lambda: run(args), args.debug)
 
 
 def run(args) -> None:
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     A, b, lam, f_ref = load(Path(args.dump) / f"grid{args.grid}")
     A64, P64 = A.A.to(torch.float64), b.double()
     print(f"grid {args.grid}^3: {A.shape[0]} rays x {A.shape[1]} voxels, lambda {lam:.6g}, "

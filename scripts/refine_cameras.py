@@ -41,7 +41,7 @@ def modes(text: str) -> list[str]:
 def measure(cfg, mode: str) -> dict:
     """Refine as ``mode`` says, solve with the refined cameras and score."""
     started = time.perf_counter()
-    cfg = OmegaConf.merge(cfg, {"calibration": {"refine": mode}})
+    cfg = OmegaConf.merge(cfg, {"calibration": {"refine": mode, "score_before": True}})  # the none row
     device = resolve_device(cfg.device)
     scene, record = calibrated_scene(cfg, load_scene(cfg.scene), device)
     setup = prepare(cfg, scene, device)

@@ -20,6 +20,10 @@ import json
 import sys
 from pathlib import Path
 
+import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
+
+# isort: split
+
 import cv2
 import numpy as np
 import torch

@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 
+from flamerecon.device import set_threads
 from flamerecon.errors import ConfigError
 from flamerecon.evaluate.scores import score
 from flamerecon.fit.joint_frames import (
@@ -93,10 +94,7 @@ def run(args: argparse.Namespace) -> None:
     cfg = compose_train(args.overrides, default_scene=None)
     if cfg.scene.get("frames") is None:
         raise ConfigError("scene.frames: not set; give the frames to solve jointly, e.g. scene.frames=[30,34]")
-    if cfg.get("threads"):
-        import torch
-
-        torch.set_num_threads(int(cfg.threads))
+    set_threads(cfg.get("threads"))
     device = resolve_device(cfg.device)
     started = time.perf_counter()
     numbers = frame_range(cfg)

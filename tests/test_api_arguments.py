@@ -122,6 +122,7 @@ CASES = [
     ("RefineOptions", "range", lambda w: fr.RefineOptions(frames=[-1]), VALUE, "calibration.frames"),
     ("RefineOptions", "range", lambda w: fr.RefineOptions(rig=True), VALUE, "calibration.rig"),
     ("RefineOptions", "range", lambda w: fr.RefineOptions(gauge="procrustes"), VALUE, "calibration.gauge"),
+    ("RefineOptions", "type", lambda w: fr.RefineOptions(score_before="yes"), TYPE, "calibration.score_before"),
     ("SelectOptions", "none", lambda w: fr.SelectOptions(candidates=None), TYPE, "select.candidates"),
     ("SelectOptions", "type", lambda w: fr.SelectOptions(folds="4"), TYPE, "select.folds"),
     ("SelectOptions", "shape", lambda w: fr.SelectOptions(candidates={"tv": [1, 2]}), VALUE, "select.candidates"),

@@ -40,3 +40,23 @@ def test_our_lead_is_given_at_both_ends_of_the_fastest_peers_bracket():
     assert (won["ours"], won["seconds"], won["peer"], won["peer_bracket"]) == ("pqn", 2.0, "sklearn_lasso", [20.0, 40.0])
     assert won["ratio"] == pytest.approx([10.0, 20.0])
     assert benchmark.lead({"pqn": method(None), "sklearn_lasso": method(40.0, [20.0, 40.0])}) is None
+
+
+def test_the_lead_on_the_peers_cores_is_ours_on_one_thread_and_both_are_printed(capsys):
+    def method(seconds, bracket=None):
+        return {"seconds_to_1e-4": seconds, "seconds_to_1e-6": None, "bracket_1e-4": bracket, "best_rel_gap": 1e-7,
+                "iterations": 1}
+
+    methods = {"pqn": method(2.0), "pqn" + benchmark.ONE: method(4.0),
+               "sklearn_lasso": method(40.0, [20.0, 40.0])}
+    same = benchmark.lead(methods, ("pqn" + benchmark.ONE,))
+    assert same["ours"] == "pqn (1 thread)" and same["ratio"] == pytest.approx([5.0, 10.0])
+    report = {"grid": [8, 8, 8], "l1_rel": 1e-3, "reference_objective": F_REF, "reference_certified_rel_gap": 1e-9,
+              "load_average": (1.5, 1.0, 0.5), "methods": methods, "skipped": {"celer_lasso": "celer not installed"},
+              "threads": 2, "lead_1e-4": same, "lead_1e-4_threads": benchmark.lead(methods)}
+    benchmark.print_table(report)
+    out = capsys.readouterr().out
+    assert "to 1e-4 on the peers' cores: pqn (1 thread) 4.00 s, the fastest peer sklearn_lasso between 20.00 and " \
+           "40.00 s: 5.0x to 10.0x sooner (load average 1.50)" in out
+    assert "to 1e-4 ours on 2 threads: pqn 2.00 s" in out and "10.0x to 20.0x sooner" in out
+    assert "celer_lasso           skipped: celer not installed" in out

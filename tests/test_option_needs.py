@@ -23,6 +23,8 @@ CASES = [
     (["calibration.gauge=similarity", "calibration.refine=pose+intrinsics"], None),
     (["calibration.rig=true", "calibration.frames=[3,5]"], "calibration.rig"),
     (["calibration.rig=true", "calibration.frames=[3,5]", "calibration.refine=pose"], None),
+    (["calibration.score_before=true"], "calibration.score_before"),
+    (["calibration.score_before=true", "calibration.refine=pose"], None),
     (["grid.level_iters=5"], "grid.level_iters"),
     (["grid.level_iters=[5]", "grid.levels=[8]"], None),
     (["grid.level_iters=null"], None),

@@ -7,6 +7,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -210,12 +211,15 @@ def test_calibration_frames_fit_the_cameras_once_per_capture_and_read_them_back(
     first = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32, frame=0)
     other = fr.load_scene({**first.meta["config"], "frame": 9})
     refined, record = calibrated_scene(first, options, torch.device("cpu"))
-    again, again_record = calibrated_scene(other, options, torch.device("cpu"))
+    scored = options.replace(calibration=replace(options.calibration, score_before=True))
+    again, again_record = calibrated_scene(other, scored, torch.device("cpu"))
     (kept,) = (tmp_path / "calibration").rglob("*.json")
-    assert len(fits) == 1 and kept.parent.name == "synthetic"
+    assert len(fits) == 1 and kept.parent.name == "synthetic"  # score_before does not change the cameras
     assert (record["source"], record["file"], again_record["source"]) == ("fitted", str(kept), "read")
     assert again_record["file"] == str(kept)
-    assert record["frames"] == [3, 6] and math.isfinite(record["train_psnr_before"])
+    # the scores with the capture's own cameras cost a solve: only when asked
+    assert record["frames"] == [3, 6] and "train_psnr_before" not in record and "heldout_psnr_before" not in record
+    assert math.isfinite(again_record["train_psnr_before"]) and math.isfinite(again_record["heldout_psnr_before"])
     train, holdout = first.split(None)
     assert torch.equal(refined.cameras.extrinsics, again.cameras.extrinsics)
     assert not torch.equal(refined.cameras.extrinsics[train], first.cameras.extrinsics[train])
@@ -316,6 +320,13 @@ def test_a_refined_run_records_both_calibrations_and_the_training_psnr_before_an
     # heldout_psnr_before is the camera fit's first solve, not a calibration.refine=none run: said so
     assert "before refinement" not in table
     assert f"held-out {record['heldout_psnr_before']:.2f} dB with the capture's cameras in the camera fit's" in table
+
+
+def test_the_summary_says_how_to_get_the_scores_with_the_captures_own_cameras_when_not_asked(refined_run):
+    _, metrics = refined_run
+    record = {k: v for k, v in metrics["calibration"].items() if not k.endswith("_before")}
+    table = summary_table({**metrics, "calibration": record})
+    assert f"training {record['train_psnr_after']:.2f} dB (calibration.score_before=true: also with" in table
 
 
 def test_evaluate_scores_a_refined_run_with_its_refined_cameras(refined_run):

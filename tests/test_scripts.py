@@ -93,6 +93,9 @@ CALLS = {
                            r"fista_smooth:max_iters=3 +3 it"),
     "evaluate": (lambda t, run, dump: [str(copied(run, t)), "--device", "cpu", "--no-native"], r"held-out PSNR"),
     "export": (lambda t, run, dump: [str(copied(run, t)), "--format", "raw"], r"density\.raw"),
+    "first_run": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC, "calibration.refine=pose",
+                                        "calibration.frames=[2]", "calibration.rounds=1", "calibration.iterations=1"],
+                  r"first run \(frame \d+, cameras fitted\): .* s wall .*\nlater frame \(frame \d+, cameras read\): .*"),
     "heldout_limits": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0"], r"    0 cam04 "),
     "leave_one_out": (lambda t, run, dump: [*TINY, *FAST, "--views", "cam00", "--out", str(t / "loo")],
                       r"cam00: PSNR"),
@@ -107,6 +110,9 @@ CALLS = {
                       r"joint l2=0 tv=0 .* +1 "),
 }
 REAL_CALLS = {  # the same on the real capture
+    "first_run": ["--frames", "65", "5", "scene.downscale=8", "grid.resolution=16", "solver.max_iters=5",
+                  "calibration.resolution=16", "calibration.rounds=1", "calibration.iterations=1",
+                  "debias.iterations=2", "log.eval_every=0", "device=cpu"],
     "sequence_benchmark": ["--frames", "0", "0", "scene.downscale=8", "grid.resolution=16", "solver.max_iters=5",
                            "calibration.refine=none", "log.eval_every=0", "device=cpu"],
 }
@@ -172,6 +178,7 @@ BAD = [
     ("sequence_benchmark", ["--frames", "5", "2"], r"argument --frames: FIRST 5 is after LAST 2"),
     ("sequence_benchmark", ["--every", "0"], r"argument --every: got '0'; give an integer >= 1"),
     ("sequence_benchmark", ["--frames", "-1", "2"], r"argument --frames: got '-1'; give an integer >= 0"),
+    ("first_run", ["--frames", "-1", "2"], r"argument --frames: got '-1'; give an integer >= 0"),
     ("compare_methods", ["--frames", "0", "--method", "a=", "--out", "FILE/c.json"],
      r"argument --out: .*file: is a file, not a folder"),
     ("compare_methods", ["--frames", "0", "--method", "a=", "--out", "RO/c.json"],

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import fields, instance, tensor, value, wrong_value
-from flamerecon.device import resolve_device
+from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.evaluate.metrics import resample_to
 from flamerecon.fit.checks import (
@@ -103,9 +103,11 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
           grid: VoxelGrid | None = None, scored: bool = True) -> Setup:
     """Split, silhouettes, visual hull, rays and the operator restricted to them, on ``grid``
     (default: the options', :func:`scene_grid`), on ``device`` (default: ``options.device``);
-    ``scored=False``: no held-out view needed (a camera fit's density of every view)."""
+    ``scored=False``: no held-out view needed (a camera fit's density of every view). Sets
+    torch's thread count as ``options.threads`` says."""
     check_inputs("build", scene, options, device)
     instance("build.grid", grid, VoxelGrid, null=True)
+    set_threads(options.threads)
     device = resolve_device(options.device if device is None else str(device))
     started = time.perf_counter()
     train, holdout = split_views(scene, options, scored)

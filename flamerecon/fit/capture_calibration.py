@@ -99,7 +99,7 @@ def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: Re
     """What the cameras fitted by :func:`capture_refinement` depend on, JSON-able."""
     fit_options = {k: v for k, v in options.as_dict().items() if k not in UNKEYED}
     fit_options["calibration"] = {k: v for k, v in fit_options["calibration"].items()
-                                 if k not in ("folder", "file", "resolution")}  # the grid is keyed
+                                 if k not in ("folder", "file", "resolution", "score_before")}  # the grid is keyed
     return {
         "views": [scene.views[v] for v in train],
         "images": digest(images),

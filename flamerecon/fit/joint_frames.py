@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import fields, instance, wrong_type, wrong_value
-from flamerecon.device import resolve_device
+from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError
 from flamerecon.fit.build import Setup, build, check_inputs, make_problem
 from flamerecon.fit.debias import debias
@@ -201,8 +201,7 @@ def reconstruct_frames(scenes: Sequence[Scene], options: ReconstructionOptions |
     hook = hook or SolveHook()
     check_joint(options)
     torch.manual_seed(int(options.seed))
-    if options.threads:
-        torch.set_num_threads(int(options.threads))
+    set_threads(options.threads)
     device = resolve_device(options.device if device is None else str(device))
     prepared = prepare_frames(scenes, options, device)
     opts = joint_solve_options(options, joint, prepared)

@@ -111,6 +111,7 @@ RULES: dict[str, Rule] = {
     "calibration.seed": Rule(integer(0)),
     "calibration.folder": Rule(text, null=True),
     "calibration.file": Rule(text, null=True),
+    "calibration.score_before": Rule(boolean),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),
@@ -297,6 +298,7 @@ NEEDS: dict[str, Need] = {
     # calibration.refine=none must turn the refinement off without the user emptying it too
     "calibration.gauge": Need(_changed("mean"), _refined, _REFINEMENT),
     "calibration.rig": Need(bool, _refined, _REFINEMENT),
+    "calibration.score_before": Need(bool, _refined, _REFINEMENT),
     "grid.level_iters": Need(lambda v: v is not None, lambda flat: bool(flat.get("grid.levels")),
                              "coarse levels (grid.levels, e.g. [16, 32])"),
     **{f"temporal.{key}": Need(_changed(default), _frames, "frames solved jointly (scene.frames=[first,last])")

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 
 from flamerecon.arguments import describe, fields, instance, tensor, value, wrong_value
-from flamerecon.device import resolve_device
+from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import score
@@ -237,8 +237,10 @@ def fit(setup: Setup, options: ReconstructionOptions, x0: torch.Tensor | None = 
     """Fit a density on ``setup``: weights chosen (``select``), the solve, photometry refits
     (``photometry.fit_gain``), ``debias``; each solve through ``hook`` at ``stage`` (default:
     the final grid without coarse levels), from ``x0`` (M, C) or 0. ``carry``: what a resumed
-    run needs of the stages before (see :class:`SolveHook`)."""
+    run needs of the stages before (see :class:`SolveHook`). Sets torch's thread count as
+    ``options.threads`` says."""
     x0 = check_fit(setup, options, x0, hook, stage, carry)
+    set_threads(options.threads)
     hook = hook or SolveHook()
     stage = stage or Stage(0, 0)
     carry = dict(carry or {})
@@ -411,7 +413,8 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     for a scene that carries refined ones (a loaded run's: ``meta["calibrated_cameras"]``);
     held-out cameras keep their own. Returns the scene and the record for metrics.json's
     ``calibration`` (where the cameras came from, corrections per camera, the scores of this
-    frame's density solved with the capture's own cameras); ``(scene, None)`` when off."""
+    frame's density solved with the capture's own cameras, with cameras from a file only for
+    ``calibration.score_before``); ``(scene, None)`` when off."""
     refining = options.calibration
     if refining.refine == "none" and not refining.file:
         return scene, None
@@ -456,20 +459,22 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         found = CaptureCalibration(fitted.cameras, fitted.history, "fitted", None)
         initial = fitted.initial_volume
     if found.file is not None:
-        initial = this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
+        initial = (this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
+                   if refining.score_before else None)
     refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
                       meta={**scene.meta, "calibrated_cameras": scene.cameras})
-    before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
     report = correction_report(camera_subset(scene.cameras, refined_views),
                                camera_subset(refined.cameras, refined_views), grid)
     record = {
         "refine": refining.refine, "frames": list(refining.frames), "rig": bool(refining.rig), "source": found.source,
         "file": None if found.file is None else str(found.file), "rounds": found.history,
-        "seconds": time.perf_counter() - started,
-        "train_psnr_before": mean_of(before["train"], "psnr"),
-        "heldout_psnr_before": mean_of(before["heldout"], "psnr"),
         "cameras": {scene.views[v]: r for v, r in zip(refined_views, report)},
     }
+    if initial is not None:
+        before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
+        record.update(train_psnr_before=mean_of(before["train"], "psnr"),
+                      heldout_psnr_before=mean_of(before["heldout"], "psnr"))
+    record["seconds"] = time.perf_counter() - started
     return refined, record
 
 
@@ -501,8 +506,7 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     hook = hook or SolveHook()
     check_solver_name(options.solver.name)
     torch.manual_seed(int(options.seed))
-    if options.threads:
-        torch.set_num_threads(int(options.threads))
+    set_threads(options.threads)
     device = resolve_device(options.device if device is None else str(device))
     fine = scene_grid(options.grid, scene)  # camera refinement keeps the box
     grids = level_grids(list(options.grid.levels) or None, fine)

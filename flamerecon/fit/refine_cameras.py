@@ -96,7 +96,11 @@ class RefineOptions:
     - ``folder``: where a capture's calibration files are kept (None: ``calibration/`` in the
       cache folder, :func:`flamerecon.scenes.cache.cache_home`);
     - ``file``: a cameras.json (a run's, or a capture's calibration file) whose cameras replace
-      the training cameras; no camera fit runs, whatever ``refine`` says.
+      the training cameras; no camera fit runs, whatever ``refine`` says;
+    - ``score_before``: record the scores of this frame's density solved with the capture's own
+      cameras (``train_psnr_before``, ``heldout_psnr_before``) also when the cameras come from a
+      file (``frames`` or ``file``), for one more density solve; a fit on the frame itself records
+      them anyway (its first solve).
     """
 
     refine: str = "none"
@@ -116,6 +120,7 @@ class RefineOptions:
     seed: int = 0
     folder: str | None = None
     file: str | None = None
+    score_before: bool = False
 
     def __post_init__(self) -> None:
         check_section("calibration", self)

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from flamerecon.device import resolve_device
+from flamerecon.device import resolve_device, set_threads
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.run.folder import RUN_LAYER_KEYS
 
@@ -25,6 +25,5 @@ def start_run(cfg: DictConfig, run_dir: str | Path) -> tuple[Path, torch.device]
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(int(cfg.seed))
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    set_threads(cfg.get("threads"))
     return run_dir, resolve_device(cfg.device)

@@ -126,8 +126,8 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
     for name, values in (rec.calibration or {}).get("cameras", {}).items():
         writer.scalars(0, {k: v for k, v in values.items() if k != "principal_point_px"}, f"calibration/{name}")
     if rec.calibration:
-        writer.scalars(0, {k: metrics["calibration"][k] for k in ("train_psnr_before", "train_psnr_after")},
-                       "calibration")
+        writer.scalars(0, {k: metrics["calibration"][k] for k in ("train_psnr_before", "train_psnr_after")
+                           if k in metrics["calibration"]}, "calibration")
     log_pictures(writer, setup, rec.fit.result.iterations, volume, held_imgs)  # the final renders, not again
     writer.scalars(rec.fit.result.iterations, {f"heldout_{k}": mean_of(metrics["heldout"], k) for k in (
         "detail", "detail_silhouette") if k in next(iter(metrics["heldout"].values()), {})}, "eval")

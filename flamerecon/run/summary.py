@@ -39,7 +39,9 @@ def summary_table(metrics: dict) -> str:
         rows.append((f"calibration ({c['refine']}{fitted})", (
             f"training {c['train_psnr_before']:.2f} -> {c['train_psnr_after']:.2f} dB; held-out "
             f"{c['heldout_psnr_before']:.2f} dB with the capture's cameras in the camera fit's "
-            "first solve (calibration.refine=none runs the whole pipeline)")))
+            "first solve (calibration.refine=none runs the whole pipeline)") if "train_psnr_before" in c else (
+            f"training {c['train_psnr_after']:.2f} dB (calibration.score_before=true: also with the "
+            "capture's own cameras, one more solve)")))
         rows.append(("  cameras", calibration_source(c)))
         rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "
                                 f"focal x{r['focal_scale']:.4f}, principal point "

@@ -1,0 +1,76 @@
+"""What a user of a new capture waits for: ``python train.py scene=scalarflow`` on frame A
+with an empty calibration folder (the cameras fitted, then the frame), then on frame B reading
+the cameras fitted (a later frame); prints each run's wall time, its split and the load average.
+
+    python scripts/first_run.py [--frames 65 5] [--out FOLDER] [train.py overrides ...]
+
+``scene=scalarflow`` unless the overrides choose a scene. Each run is a ``train.py`` process as a user starts it (imports, loading, outputs included),
+into ``FOLDER/frame<N>`` with ``calibration.folder=FOLDER/calibration`` (default: a temporary
+folder, removed after).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from flamerecon.errors import ConfigError, FlameReconError
+from flamerecon.run.cli import at_least, output_folder, run_script, script_parser
+
+TRAIN = Path(__file__).resolve().parents[1] / "train.py"
+
+
+def timed_run(frame: int, folder: Path, overrides: list[str]) -> tuple[float, dict]:
+    """Wall seconds of one ``train.py`` process on ``frame`` and its metrics.json."""
+    run_dir = folder / f"frame{frame}"
+    scene = [] if any(o.startswith("scene=") for o in overrides) else ["scene=scalarflow"]
+    command = [sys.executable, str(TRAIN), *scene, f"scene.frame={frame}",
+               f"calibration.folder={folder / 'calibration'}", *overrides, f"hydra.run.dir={run_dir}"]
+    started = time.perf_counter()
+    done = subprocess.run(command, check=False, capture_output=True, text=True)
+    seconds = time.perf_counter() - started
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        raise FlameReconError(f"train.py on frame {frame} failed (exit status {done.returncode}): {last}")
+    return seconds, json.loads((run_dir / "metrics.json").read_text())
+
+
+def report(what: str, frame: int, seconds: float, metrics: dict) -> str:
+    """One line: the wall time, the run's own split, the cameras' source, the load average."""
+    timing, calibration = metrics.get("timing", {}), metrics.get("calibration") or {}
+    split = ", ".join(f"{k} {timing[k]:.1f}" for k in ("calibration", "solve", "total") if k in timing)
+    cameras = f"cameras {calibration['source']}" if calibration else "no camera refinement"
+    heldout = [v["psnr"] for v in metrics["heldout"].values()]
+    return (f"{what} (frame {frame}, {cameras}): {seconds:.1f} s wall ({split} s in the run); held-out "
+            f"{sum(heldout) / len(heldout):.2f} dB; load average {os.getloadavg()[0]:.2f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = script_parser(__doc__, __file__)
+    parser.add_argument("--frames", type=at_least(0), nargs=2, default=[65, 5], metavar=("A", "B"),
+                        help="the first run's frame and the later frame's (default: 65 5)")
+    parser.add_argument("--out", type=output_folder, help="keep the runs and the calibration file here")
+    parser.add_argument("overrides", nargs="*", help="train.py overrides")
+    args = parser.parse_args(argv)
+
+    def run() -> None:
+        print(f"load average {os.getloadavg()[0]:.2f} on {len(os.sched_getaffinity(0))} usable cores", flush=True)
+        with tempfile.TemporaryDirectory(prefix="flamerecon-first-run-") as tmp:
+            folder = args.out or Path(tmp)
+            if (folder / "calibration").exists() and any((folder / "calibration").iterdir()):
+                raise ConfigError(f"--out: {folder / 'calibration'} is not empty; give a new folder, the "
+                                      "first run must fit the cameras")
+            for what, frame in (("first run", args.frames[0]), ("later frame", args.frames[1])):
+                seconds, metrics = timed_run(frame, folder, args.overrides)
+                print(report(what, frame, seconds, metrics), flush=True)
+
+    return run_script(run, args.debug)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
