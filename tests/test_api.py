@@ -16,7 +16,16 @@ from hydra import compose, initialize_config_dir
 import flamerecon as fr
 from flamerecon.errors import ConfigError, Interrupted
 from flamerecon.run.pipeline import options_from_config, reconstruct
-from tests.helpers import REPO, CliRun, interrupt_at, repo_env, tiny_cfg, tiny_config
+from tests.helpers import (
+    REPO,
+    TINY_API_SETUP,
+    CliRun,
+    interrupt_at,
+    python_stdout,
+    repo_env,
+    tiny_cfg,
+    tiny_config,
+)
 
 #: the settings of tests.helpers.TINY, written as a notebook would write them.
 NOTEBOOK_SCENE = {"width": 48, "height": 36, "n_cameras": 5, "phantom_resolution": 32}
@@ -77,17 +86,9 @@ def test_load_run_rescores_a_cli_run_to_its_metrics(cli_run):
 def test_the_core_imports_neither_hydra_nor_omegaconf():
     # a scene by its options mapping: a preset's name (fr.load_scene("synthetic"), fr.preset)
     # composes conf/ as the command line does, with Hydra, in the run layer
-    code = ("import sys, flamerecon as fr; "
-            "s = fr.load_scene({'name': 'synthetic', 'width': 24, 'height': 18, 'n_cameras': 3, "
-            "'phantom_resolution': 16}); "
-            "o = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device='cpu', "
-            "solver=fr.SolverOptions(params={'max_iters': 5})); "
-            "fr.reconstruct(s, o); "
+    code = (f"import sys, flamerecon as fr; {TINY_API_SETUP}; fr.reconstruct(s, o); "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('hydra', 'omegaconf')))")
-    done = subprocess.run([sys.executable, "-c", code], check=False, cwd=REPO, env=repo_env(), capture_output=True,
-                          text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "[]"
+    assert python_stdout(code).strip() == "[]"
 
 
 @pytest.mark.parametrize("given, expected", [({}, "1000"), ({"GOMP_SPINCOUNT": "50"}, "50"),

@@ -33,7 +33,7 @@ from flamerecon.run.pipeline import reconstruct
 from flamerecon.run.runner import FAILED_FILE, run_task
 from flamerecon.scenes import SceneError, load_scene
 from flamerecon.scenes.frames import read_camera_frame
-from tests.helpers import FAST, REPO, interrupt_at, repo_env, tiny_cfg, tiny_synthetic
+from tests.helpers import FAST, REPO, interrupt_at, repo_env, tiny_cfg, tiny_synthetic, tmpfs
 from tests.helpers import TINY as TINY_SCENE
 
 TINY = [*TINY_SCENE, *FAST]  # the tiny config with the short solve
@@ -322,20 +322,6 @@ def test_options_are_checked_before_any_work(case, tmp_path, capsys, monkeypatch
 
 # ---------------------------------------------------------------------------------------------
 # family: write failures (disk full, read-only), nothing lost
-
-@contextlib.contextmanager
-def tmpfs(folder: Path, size: str = "4m"):
-    """A tmpfs mounted at ``folder`` for the block (skips where this process cannot mount)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
-                          capture_output=True, check=False)
-    if done.returncode != 0:
-        pytest.skip("cannot mount a tmpfs here (needs root)")
-    try:
-        yield folder
-    finally:
-        subprocess.run(["umount", "-l", str(folder)], check=False)
-
 
 def fill(folder: Path) -> None:
     """Write into ``folder`` until its file system is full."""

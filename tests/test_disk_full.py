@@ -17,7 +17,7 @@ import pytest
 from flamerecon.outputs import atomic
 from flamerecon.outputs.atomic import stale_temporaries, update_json_atomic
 from flamerecon.run.pipeline import reconstruct
-from tests.helpers import FAST, REPO, TINY, repo_env, tiny_config
+from tests.helpers import FAST, REPO, TINY, repo_env, tiny_config, tmpfs
 
 #: appended streams that are not replaced whole (TensorBoard's event files, the run's log)
 EXEMPT = ("events.out.tfevents", "train.log")
@@ -141,12 +141,7 @@ def test_hydra_config_save_is_atomic(tmp_path, monkeypatch, capsys):
 @pytest.mark.parametrize("free_kib", [2, 4, 8, 40, 100])
 def test_render_on_a_real_full_tmpfs(finished_run, tmp_path, free_kib):
     """The case reported: render.py --figures on a nearly full disk (root only: mounts a tmpfs)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(disk)],
-                      capture_output=True, check=False).returncode:
-        pytest.skip("cannot mount a tmpfs here")
-    try:
+    with tmpfs(tmp_path / "disk", "size=2m") as disk:
         run = shutil.copytree(finished_run, disk / "run",
                               ignore=shutil.ignore_patterns("events.out.tfevents*", "*.vti", "*.ply"))
         before = snapshot(run)
@@ -158,5 +153,3 @@ def test_render_on_a_real_full_tmpfs(finished_run, tmp_path, free_kib):
         assert result.returncode == 2 and "ENOSPC" in result.stderr, result.stderr
         assert result.stderr.count("\n") == 1, result.stderr  # the one line, no library noise
         assert all(after[p] == before[p] for p in before)
-    finally:
-        subprocess.run(["umount", str(disk)], check=True)

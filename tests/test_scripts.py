@@ -7,7 +7,6 @@ import contextlib
 import importlib.util
 import re
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from omegaconf import OmegaConf
 
 from flamerecon.outputs.export import save_density
 from flamerecon.run.pipeline import reconstruct
-from tests.helpers import FAST, REPO, TINY, tiny_cfg
+from tests.helpers import FAST, REPO, TINY, tiny_cfg, tmpfs
 
 SCRIPTS = sorted(p.stem for p in (REPO / "scripts").glob("*.py"))
 SYNTHETIC = ["scene=synthetic", *TINY, *FAST]
@@ -151,20 +150,6 @@ def test_a_tiny_call_on_the_real_capture(name, tmp_path, capsys, monkeypatch):
     assert re.search(CALLS[name][1].replace("2 frames", "1 frames"), capsys.readouterr().out)
 
 
-@contextlib.contextmanager
-def read_only(folder: Path):
-    """A read-only file system mounted at ``folder`` for the block (skips where this process
-    cannot mount)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(folder)],
-                      capture_output=True, check=False).returncode != 0:
-        pytest.skip("cannot mount a file system here (needs root)")
-    try:
-        yield folder
-    finally:
-        subprocess.run(["umount", "-l", str(folder)], check=False)
-
-
 def _file(t: Path) -> str:
     (t / "file").write_text("x")
     return str(t / "file")
@@ -212,7 +197,7 @@ def test_a_bad_argument_is_one_line_and_status_2(name, argv, message, tmp_path, 
     monkeypatch.chdir(tmp_path)
     with contextlib.ExitStack() as stack:
         if any("RO" in a for a in argv):
-            stack.enter_context(read_only(tmp_path / "ro"))
+            stack.enter_context(tmpfs(tmp_path / "ro", "ro,size=1m"))
         argv = [a.replace("FILE", _file(tmp_path)) if "FILE" in a else a for a in argv]
         argv = [a.replace("RO", str(tmp_path / "ro")).replace("TMP", str(tmp_path))
                 .replace("RUN", str(tmp_path)).replace("SWEEP", str(tmp_path)) for a in argv]

@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import ast
 import os
-import subprocess
-import sys
 
 import pytest
 import torch
 
 from flamerecon import device
-from tests.helpers import REPO, repo_env
+from tests.helpers import REPO, TINY_API_SETUP, python_stdout
 
 
 @pytest.mark.parametrize("cores, load, threads", [
@@ -50,10 +48,7 @@ def test_the_default_is_read_once_per_process(machine, monkeypatch):
 
 def test_the_thread_count_holds_when_torch_was_imported_first():
     code = ("import torch; import flamerecon as fr; from flamerecon.device import default_threads; "
-            "s = fr.load_scene({'name': 'synthetic', 'width': 24, 'height': 18, 'n_cameras': 3, "
-            "'phantom_resolution': 16}); "
-            "o = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device='cpu', threads=1, "
-            "solver=fr.SolverOptions(params={'max_iters': 5})); "
+            f"{TINY_API_SETUP}; o = o.replace(threads=1); "
             "steps = {'reconstruct': lambda o: fr.reconstruct(s, o), 'build': lambda o: fr.build(s, o), "
             "'fit': lambda o: fr.fit(setup, o)}; "
             "setup = fr.build(s, o)\n"
@@ -61,10 +56,7 @@ def test_the_thread_count_holds_when_torch_was_imported_first():
             "    torch.set_num_threads(3); step(o); print(name, torch.get_num_threads())\n"
             "torch.set_num_threads(3); fr.reconstruct(s, o.replace(threads=None)); "
             "print('null', torch.get_num_threads() == default_threads())")
-    done = subprocess.run([sys.executable, "-c", code], check=False, cwd=REPO, env=repo_env(), capture_output=True,
-                          text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["reconstruct", "1", "build", "1", "fit", "1", "null", "True"]
+    assert python_stdout(code).split() == ["reconstruct", "1", "build", "1", "fit", "1", "null", "True"]
 
 
 def first_import(tree: ast.Module, roots: tuple[str, ...]) -> float:

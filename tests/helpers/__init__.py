@@ -5,7 +5,8 @@ test module; :mod:`tests.helpers.views` writes captures in each loader's format.
 from .config import FAST, HELDOUT, SMALLER, TINY, TRAIN, VIEWS, CliRun, tiny_config
 from .geometry import random_hull, random_rays, ring_of_cameras
 from .interrupts import interrupt_at
-from .paths import REPO, repo_env
+from .mounts import tmpfs
+from .paths import REPO, TINY_API_SETUP, python_stdout, repo_env
 from .problems import (
            assert_resumes_exactly,
            csr,
@@ -16,7 +17,7 @@ from .problems import (
 )
 from .scene import defective, tiny_cfg, tiny_synthetic
 
-__all__ = ["FAST", "HELDOUT", "REPO", "SMALLER", "TINY", "TRAIN", "VIEWS", "CliRun", "assert_resumes_exactly", "csr",
-           "defective", "interrupt_at", "objective", "random_coo", "random_hull", "random_rays", "repo_env",
+__all__ = ["FAST", "HELDOUT", "REPO", "SMALLER", "TINY", "TINY_API_SETUP", "TRAIN", "VIEWS", "CliRun", "assert_resumes_exactly", "csr",
+           "defective", "interrupt_at", "objective", "python_stdout", "random_coo", "random_hull", "random_rays", "repo_env",
            "ring_of_cameras", "sklearn_objective", "tiny_cfg", "tiny_config", "tiny_problem",
-           "tiny_synthetic"]
+           "tiny_synthetic", "tmpfs"]
