@@ -61,23 +61,19 @@ def load_scene(scene: str | Mapping = "synthetic", **options) -> Scene:
     An option the loader does not read, or a value its ``scene.*`` rule refuses, is an
     :class:`~flamerecon.errors.ArgumentError` naming it."""
     instance("load_scene.scene", scene, (str, Mapping), "a scene name or a mapping of scene options")
+    register_built_in()
     node = {"name": scene} if isinstance(scene, str) else dict(scene)
     if isinstance(scene, str) and (config_dir() / "scene" / f"{scene}.yaml").is_file():
         from flamerecon.run.preset import scene_preset  # Hydra composes it, as for the command line
 
-        register_built_in()
         node = scene_preset(scene)
-        known = SCENE_KEYS.get(node.get("name"))
-        # the preset's run-level keys (scene.frames: which frames a run solves jointly) are not the loader's
-        node = {k: v for k, v in node.items() if known is None or k in known}
     given = set(options) | (set() if isinstance(scene, str) else set(node))
     node = {**node, **options}
-    frames = node.pop("frames", None)  # the scene node's run-level key (frames solved jointly)
-    if frames is not None:
+    frames = node.pop("frames", None)  # the scene node's run-level key: the frames a run solves jointly
+    if frames is not None and "frames" in given:
         raise wrong_value("scene.frames", frames, "None here: load_scene loads one frame (scene.frame); load "
                           "each and solve them jointly with fr.reconstruct_frames")
     name = node.get("name")
-    register_built_in()
     if name not in SCENE_LOADERS:
         raise wrong_value("scene.name", name, f"one of {sorted(SCENE_LOADERS)}")
     known = SCENE_KEYS.get(name)

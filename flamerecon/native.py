@@ -7,13 +7,12 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-import tempfile
 from collections.abc import Iterator
 
 
 @contextlib.contextmanager
 def native_stderr_silenced() -> Iterator[None]:
-    """File descriptor 2 sent to a scratch file for the block (Python's own ``sys.stderr``
+    """File descriptor 2 sent to the null device for the block (Python's own ``sys.stderr``
     writes are flushed first and go there too); restored afterwards, whatever happens."""
     try:
         saved = os.dup(2)
@@ -22,10 +21,11 @@ def native_stderr_silenced() -> Iterator[None]:
         return
     with contextlib.suppress(Exception):
         sys.stderr.flush()
+    sink = os.open(os.devnull, os.O_WRONLY)  # no file made per image read
     try:
-        with tempfile.TemporaryFile() as sink:
-            os.dup2(sink.fileno(), 2)
-            yield
+        os.dup2(sink, 2)
+        yield
     finally:
+        os.close(sink)
         os.dup2(saved, 2)
         os.close(saved)

@@ -447,7 +447,8 @@ def swept_bracket(trace: list[tuple[float, float]], f_ref: float, target: float)
 def lead(methods: dict, ours: tuple[str, ...] = OURS) -> dict | None:
     """Our fastest method of ``ours`` to 1e-4 against the fastest peer's bracket: the ratio at
     both ends."""
-    peers = [(m["bracket_1e-4"], name) for name, m in methods.items() if m["bracket_1e-4"]]
+    peers = [(m["bracket_1e-4"], name) for name, m in methods.items()
+             if name.removesuffix(ONE) not in OURS and m["bracket_1e-4"]]  # ours on any cores are not peers
     found = [(m["seconds_to_1e-4"], name) for name, m in methods.items()
              if name in ours and m["seconds_to_1e-4"] is not None]
     if not found or not peers:

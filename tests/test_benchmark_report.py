@@ -40,6 +40,9 @@ def test_our_lead_is_given_at_both_ends_of_the_fastest_peers_bracket():
     assert (won["ours"], won["seconds"], won["peer"], won["peer_bracket"]) == ("pqn", 2.0, "sklearn_lasso", [20.0, 40.0])
     assert won["ratio"] == pytest.approx([10.0, 20.0])
     assert benchmark.lead({"pqn": method(None), "sklearn_lasso": method(40.0, [20.0, 40.0])}) is None
+    ours_swept = {"pqn": method(2.0, [1.0, 2.0]), "pqn" + benchmark.ONE: method(3.0, [2.5, 3.0]),
+                  "sklearn_lasso": method(40.0, [20.0, 40.0])}
+    assert benchmark.lead(ours_swept)["peer"] == "sklearn_lasso"  # ours, on any cores, are never the peer
 
 
 def test_the_lead_on_the_peers_cores_is_ours_on_one_thread_and_both_are_printed(capsys):
