@@ -11,7 +11,13 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from flamerecon.evaluate.scores import masked_scores, native_scene, render_support, silhouette_union
+from flamerecon.evaluate.scores import (
+    captured_silhouettes,
+    masked_scores,
+    native_scene,
+    render_support,
+    silhouette_union,
+)
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import render_image
@@ -37,11 +43,12 @@ def test_the_silhouette_union_adds_what_the_rendering_shows_beyond_the_capture(s
     views = [0, 1]
     options = {"method": "threshold", "threshold": 0.05, "dilate_px": 0, "speck_px": 0}
     empty = torch.zeros_like(small_scene.images[views])
-    captured_only = silhouette_union(empty, small_scene, views, options)
+    captured = captured_silhouettes(small_scene, views, options)
+    captured_only = silhouette_union(empty, captured, options)
     assert captured_only.any() and not captured_only.all()
     stray = empty.clone()
     stray[:, :, 0, 0] = 0.5  # a bright corner pixel in the rendering, dark in the capture
-    union = silhouette_union(stray, small_scene, views, options)
+    union = silhouette_union(stray, captured, options)
     assert union[:, 0, 0].all() and not captured_only[:, 0, 0].any()
     assert int(union.sum()) == int(captured_only.sum()) + 2
 

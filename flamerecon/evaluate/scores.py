@@ -51,11 +51,10 @@ def captured_silhouettes(scene: Scene, views: list[int], options: dict) -> torch
     return silhouettes(scene.images[views], **options).cpu()
 
 
-def silhouette_union(rendered: torch.Tensor, scene: Scene, views: list[int],
-                     options: dict) -> torch.Tensor:
-    """(V, H, W) bool: where the captured view (:func:`captured_silhouettes`) or the rendering
-    shows flame."""
-    return captured_silhouettes(scene, views, options) | silhouettes(rendered.clamp(0, 1), **options).cpu()
+def silhouette_union(rendered: torch.Tensor, captured: torch.Tensor, options: dict) -> torch.Tensor:
+    """(V, H, W) bool: where the captured view (``captured``, :func:`captured_silhouettes`) or
+    the rendering (V, C, H, W) shows flame."""
+    return captured | silhouettes(rendered.clamp(0, 1), **options).cpu()
 
 
 def detail_sigma(scene: Scene) -> float:
@@ -179,8 +178,7 @@ def score_rendered(rendered: torch.Tensor, scene: Scene, views: list[int],
     if silhouette is None:
         return score_views(rendered, scene, views)
     captured = captured_silhouettes(scene, views, silhouette)
-    union = captured | silhouettes(rendered.clamp(0, 1), **silhouette).cpu()
-    return score_views(rendered, scene, views, union, captured)
+    return score_views(rendered, scene, views, silhouette_union(rendered, captured, silhouette), captured)
 
 
 def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
