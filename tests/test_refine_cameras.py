@@ -246,6 +246,9 @@ def test_the_rig_protocol_refines_every_camera_on_frames_that_are_not_scored(tmp
     other_fold = options.replace(holdout=(scene.views[0],))
     _, again = calibrated_scene(scene, other_fold, torch.device("cpu"))  # one rig calibration for every fold
     assert (again["source"], again["file"]) == ("read", record["file"])
+    given = options.replace(calibration=RefineOptions(refine="pose", frames=(3, 6), rig=True, file=record["file"]))
+    from_file, _ = calibrated_scene(scene, given, torch.device("cpu"))  # calibration.file of a rig: every camera
+    assert torch.allclose(from_file.cameras.extrinsics[holdout], refined.cameras.extrinsics[holdout], atol=1e-6)
     scored = fr.load_scene({**scene.meta["config"], "frame": 6})
     with pytest.raises(ConfigError, match=r"calibration\.rig: frame 6 is reconstructed"):
         calibrated_scene(scored, options, torch.device("cpu"))

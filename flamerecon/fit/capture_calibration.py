@@ -126,13 +126,13 @@ def read_calibration(path: Path, key: str) -> list[dict] | None:
     return None
 
 
-def file_cameras(path: str | Path, scene: Scene, train: list[int]) -> PinholeCamera:
-    """The cameras of ``scene`` with its training cameras ``train`` read from the cameras.json
-    ``path`` (by name; ``calibration.file``) and its held-out cameras its own."""
+def file_cameras(path: str | Path, scene: Scene, views: list[int]) -> PinholeCamera:
+    """The cameras of ``scene`` with those of ``views`` (the training ones; every one for a rig)
+    read from the cameras.json ``path`` (by name; ``calibration.file``) and the others its own."""
     records = read_camera_file(path)["cameras"]
     read = cameras_from_records(records, scene.views, scene.cameras.height, scene.cameras.width,
                                 f"calibration.file: {path}")
-    return with_cameras(scene.cameras, train, camera_subset(read, train))
+    return with_cameras(scene.cameras, views, camera_subset(read, views))
 
 
 def capture_name(scene: Scene) -> str:

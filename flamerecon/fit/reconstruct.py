@@ -443,15 +443,16 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
 
     this = frame_of(scene)
     refined_views = list(train)  # the cameras the fit corrects: the training ones, every one for a rig
-    if refining.rig and not refining.file:
+    if refining.rig:
         frame = scene.meta.get("config", {}).get("frame", scene.meta.get("frame"))
-        if frame in refining.frames:
+        if not refining.file and frame in refining.frames:
             raise ConfigError(f"calibration.rig: frame {frame} is reconstructed and one of calibration.frames "
                               f"{list(refining.frames)}, so its held-out views would enter the camera fit; "
                               "fit the rig to other frames")
         refined_views = list(range(len(scene.views)))
-    if refining.file:
-        found = CaptureCalibration(file_cameras(refining.file, scene, train), [], "read", Path(refining.file))
+    if refining.file:  # a rig's file gives every camera, the held-out ones too
+        found = CaptureCalibration(file_cameras(refining.file, scene, refined_views), [], "read",
+                                   Path(refining.file))
     elif refining.frames:
         found = capture_refinement(scene, refined_views, grid, options, device, frame_of)
     else:
