@@ -148,6 +148,13 @@ def test_orbit_cameras_look_at_target_with_up_upwards():
     assert (depth > 0).all()
 
 
+def test_orbit_cameras_take_azimuths_as_a_number_a_list_an_array_or_a_tensor():
+    given = [45, np.int64(45), [45.0], np.array([45.0]), torch.tensor([45.0]), torch.tensor(45.0)]
+    centres = [camera_centers(orbit_cameras(a, 10.0, 2.0, (0.0, 0.0, 0.0))) for a in given]
+    for c in centres:
+        np.testing.assert_allclose(c, centres[0], atol=1e-6)
+
+
 def test_framing_distance_sees_the_whole_box():
     lo, hi = np.array([-1.0, 0.0, -1.0]), np.array([1.0, 3.0, 1.0])
     dist = framing_distance(lo, hi, fov_deg=40.0)

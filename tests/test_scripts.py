@@ -94,7 +94,7 @@ CALLS = {
     "export": (lambda t, run, dump: [str(copied(run, t)), "--format", "raw"], r"density\.raw"),
     "first_run": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC, "calibration.refine=pose",
                                         "calibration.frames=[2]", "calibration.rounds=1", "calibration.iterations=1"],
-                  r"first run \(frame \d+, cameras fitted\): .* s wall .*\nlater frame \(frame \d+, cameras read\): .*"),
+                  r"first run \(frame \d+, cameras fitted\): .* s wall .*, detail \d\.\d+;.*\nlater frame \(frame \d+, cameras read\): .*"),
     "heldout_limits": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0"], r"    0 cam04 "),
     "leave_one_out": (lambda t, run, dump: [*TINY, *FAST, "--views", "cam00", "--out", str(t / "loo")],
                       r"cam00: PSNR"),

@@ -9,6 +9,7 @@ Only the slice figure needs matplotlib; everything else uses OpenCV, numpy and P
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -343,12 +344,12 @@ def orbit_cameras(
 
 
 def _angles(name: str, given) -> np.ndarray:
-    """``given`` (a number or a non-empty flat sequence of finite numbers) as a float64 array."""
-    items = [given] if not isinstance(given, (Sequence, np.ndarray, torch.Tensor)) or isinstance(given, str) else given
-    items = list(items.tolist() if hasattr(items, "tolist") else items)
+    """``given`` (a number or a non-empty flat sequence, array or tensor of finite numbers) as a
+    float64 array."""
+    flat = given.tolist() if isinstance(given, (np.ndarray, torch.Tensor)) else given
+    items = list(flat) if isinstance(flat, Sequence) and not isinstance(flat, str) else [flat]
     want = "an angle in degrees or a non-empty list of them"
-    if given is None or isinstance(given, str) or any(isinstance(a, bool) or not isinstance(a, (int, float))
-                                                      for a in items):
+    if any(isinstance(a, bool) or not isinstance(a, numbers.Real) for a in items):
         raise wrong_type(name, given, want)
     if not items:
         raise wrong_value(name, given, want)
