@@ -14,7 +14,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from flamerecon.errors import ConfigError
+from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.metrics import resample_to
 from flamerecon.fit.refine_cameras import (
     N_PARAMS,
@@ -73,7 +73,7 @@ def perturbation(cams, pivot, degrees=0.5, fraction=0.01, pixels=2.0, seed=1) ->
 
 def fixed_density(volume: torch.Tensor):
     """A CalibrationFrame's ``solve`` that returns ``volume`` whatever the cameras."""
-    return lambda views, cams: volume
+    return lambda views, cams, start: volume
 
 
 def corner_error(cams, truth, grid) -> float:
@@ -289,6 +289,48 @@ def test_the_cameras_are_fitted_to_penalised_densities_when_the_run_refits(monke
     scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32)
     fr.reconstruct(scene, options)
     assert used[-1] == "refit" and set(used[:-1]) == {"gain"} and len(used) >= 3
+
+
+def test_each_density_solve_after_a_frames_first_starts_from_its_previous_density():
+    """fit_against=all: round 0 uses each frame's first density; every later solve of a frame
+    gets that frame's latest density as its start, never another frame's."""
+    scene = scene64()
+    later = load_scene({**scene.meta["config"], "frame": 20})
+    train, _ = scene.split(None)
+    grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 24)
+    starts = []
+
+    def recording(frame: int):
+        def solve(views, cams, start):
+            starts.append((frame, None if start is None else float(start.sum())))
+            return torch.full((scene.images.shape[1], *grid.shape), float(len(starts)))  # the call's number
+        return solve
+
+    frames = [CalibrationFrame(s.images, silhouettes(s.images), recording(k)) for k, s in enumerate((scene, later))]
+    refine(scene.cameras, train, frames, grid, RefineOptions(refine="pose", rounds=3, iterations=1, max_rays=500))
+    cells = scene.images.shape[1] * grid.shape[0] * grid.shape[1] * grid.shape[2]
+    # first solves (calls 1, 2), round 1's (3, 4) from them, round 2's (5, 6) from those
+    assert starts == [(0, None), (1, None), (0, 1.0 * cells), (1, 2.0 * cells), (0, 3.0 * cells), (1, 4.0 * cells)]
+
+
+def test_calibration_solve_iterations_limit_the_warm_started_solves_only(monkeypatch):
+    """calibration.solve_iterations=k: a frame's first density solve runs the solver's
+    max_iters from zero, every later one k iterations from the frame's previous density."""
+    import flamerecon as fr
+    from flamerecon.fit import reconstruct as reconstruction
+
+    calls = []
+    real = reconstruction.fit
+    monkeypatch.setattr(reconstruction, "fit", lambda setup, options, x0=None, *a, **k: calls.append(
+        (options.solver.params["max_iters"], x0 is None)) or real(setup, options, x0, *a, **k))
+    options = fr.ReconstructionOptions(
+        grid=fr.GridOptions(resolution=16), solver=fr.SolverOptions().with_values(max_iters=12),
+        calibration=RefineOptions(refine="pose", rounds=3, iterations=1, solve_iterations=4), device="cpu")
+    scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32)
+    fr.reconstruct(scene, options)
+    assert calls == [(12, True), (4, False), (4, False), (12, True)]  # the last: the run's own solve
+    with pytest.raises(ArgumentError, match="calibration.solve_iterations"):
+        RefineOptions(refine="pose", solve_iterations=0)
 
 
 @pytest.fixture(scope="module")

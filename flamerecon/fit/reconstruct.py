@@ -433,11 +433,14 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     def frame_of(source: Scene) -> CalibrationFrame:
         images = source.images.to(device)
 
-        def solve_density(views: list[int], cameras) -> torch.Tensor:
+        def solve_density(views: list[int], cameras, start: torch.Tensor | None) -> torch.Tensor:
             fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
+            if start is not None and refining.solve_iterations is not None and "max_iters" in fold.solver.params:
+                fold = fold.replace(solver=fold.solver.with_values(max_iters=refining.solve_iterations))
             setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid,
                           scored=False)
-            return setup.volume(fit(setup, fold).result.x)
+            x0 = None if start is None else hull_values(start, grid, setup.voxel_index)
+            return setup.volume(fit(setup, fold, x0).result.x)
 
         return CalibrationFrame(images, scene_masks(source, images, options), solve_density)
 
@@ -460,7 +463,7 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         found = CaptureCalibration(fitted.cameras, fitted.history, "fitted", None)
         initial = fitted.initial_volume
     if found.file is not None:
-        initial = (this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device))
+        initial = (this.solve(list(train), cameras_to(camera_subset(scene.cameras, train), device), None)
                    if refining.score_before else None)
     refined = replace(scene, cameras=cameras_to(found.cameras, "cpu"),
                       meta={**scene.meta, "calibrated_cameras": scene.cameras})

@@ -92,6 +92,9 @@ class RefineOptions:
       ones included (they are one rig): the frame reconstructed must not be one of ``frames``,
       so that a held-out camera's pixels of a scored frame never enter the fit. Off (the
       *strict* protocol): held-out cameras keep the calibration file's pose;
+    - ``solve_iterations``: iterations of each density solve after the first one of a frame,
+      warm-started from that frame's previous density (the cameras moved by a fraction of a
+      pixel, so the density barely changes); None: the solver's own ``max_iters``;
     - ``seed``: of the pixel subsets;
     - ``folder``: where a capture's calibration files are kept (None: ``calibration/`` in the
       cache folder, :func:`flamerecon.scenes.cache.cache_home`);
@@ -117,6 +120,7 @@ class RefineOptions:
     frames: tuple[int, ...] = ()
     gauge: str = "mean"
     rig: bool = False
+    solve_iterations: int | None = None
     seed: int = 0
     folder: str | None = None
     file: str | None = None
@@ -413,14 +417,16 @@ def with_cameras(cameras: PinholeCamera, index: list[int], replaced: PinholeCame
     return PinholeCamera(K4, E, cameras.height.clone(), cameras.width.clone())
 
 
-Solve = Callable[[list[int], PinholeCamera], torch.Tensor]
+Solve = Callable[[list[int], PinholeCamera, torch.Tensor | None], torch.Tensor]
 
 
 @dataclass
 class CalibrationFrame:
     """One frame of the camera fit: ``images`` (B, C, H, W) and silhouettes ``masks`` (B, H, W)
-    bool of every camera of the scene, and ``solve(views, cams)``: the density (C, nz, ny, nx)
-    fitted to this frame's views ``views`` seen by the cameras ``cams`` (len(views))."""
+    bool of every camera of the scene, and ``solve(views, cams, start)``: the density (C, nz,
+    ny, nx) fitted to this frame's views ``views`` seen by the cameras ``cams`` (len(views)),
+    from ``start`` (a density of the same box, the frame's previous one) with
+    ``solve_iterations`` iterations, or from zero with the solver's own (``start`` None)."""
 
     images: torch.Tensor
     masks: torch.Tensor
@@ -466,22 +472,25 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
     generator = torch.Generator().manual_seed(int(options.seed))
     fitted_at_all = bool(active) and basis.shape[1] > 0
     progress = Progress("camera fit", 1 + (options.rounds if fitted_at_all else 0))
-    initial = [frame.solve(list(train), base) for frame in frames]
+    initial = [frame.solve(list(train), base, None) for frame in frames]
     progress.step(f"the density of {len(frames)} frame(s) with the capture's cameras")
     history = []
     if not fitted_at_all:
         return Refinement(with_cameras(cameras, train, base), theta, initial[0], history)
     others = options.fit_against == "others" and T >= 3
     rays_per_frame = max(1, int(options.max_rays) // len(frames))
+    latest = list(initial)  # each frame's latest density (fit_against=all): the next solve's start
     for r in range(options.rounds):
         current = corrected_cameras(base, theta, pivot)
         fits = []
-        for frame, first in zip(frames, initial):
+        for k, (frame, first) in enumerate(zip(frames, initial)):
             if others:
                 rest = [[j for j in range(T) if j != i] for i in range(T)]
-                volumes = [frame.solve([train[j] for j in js], camera_subset(current, js)).detach() for js in rest]
+                volumes = [frame.solve([train[j] for j in js], camera_subset(current, js), None).detach()
+                           for js in rest]
             else:
-                volumes = [(first if r == 0 else frame.solve(list(train), current)).detach()] * T
+                latest[k] = first if r == 0 else frame.solve(list(train), current, latest[k]).detach()
+                volumes = [latest[k]] * T
             index, valid = fit_pixels(frame.masks[train], options.band_px, rays_per_frame, generator)
             fits.append(CameraFit(volumes, grid, base, pivot, frame.images[train], index, valid, step))
         theta, info = camera_step(JointFit(fits), theta, sizes, basis, active, options.iterations)
