@@ -340,12 +340,12 @@ class CameraFit:
         channel) times d ray / d theta (forward mode, one pass per active parameter)."""
         theta = theta.detach()
         tangents = torch.zeros(*self.uv.shape[:2], 6, N_PARAMS, device=theta.device)  # (T, R, 6, 9)
-        rays = None
-        for k in active:
-            direction = torch.zeros_like(theta)
-            direction[:, k] = 1.0
-            rays, tangents[..., k] = torch.func.jvp(self.rays, (theta,), (direction,))
-        rays = (self.rays(theta) if rays is None else rays)[self.valid].detach().requires_grad_(True)
+        if active:  # every active parameter's direction in one batched forward-mode pass
+            directions = torch.zeros(len(active), *theta.shape, dtype=theta.dtype, device=theta.device)
+            directions[range(len(active)), :, active] = 1.0
+            pushed = torch.func.vmap(lambda d: torch.func.jvp(self.rays, (theta,), (d,))[1])(directions)
+            tangents[..., active] = pushed.permute(1, 2, 3, 0)
+        rays = self.rays(theta)[self.valid].detach().requires_grad_(True)
         with torch.enable_grad():
             pixels = self.render(rays)
             C = pixels.shape[1]
