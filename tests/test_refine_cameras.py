@@ -313,9 +313,10 @@ def test_each_density_solve_after_a_frames_first_starts_from_its_previous_densit
     assert starts == [(0, None), (1, None), (0, 1.0 * cells), (1, 2.0 * cells), (0, 3.0 * cells), (1, 4.0 * cells)]
 
 
-def test_calibration_solve_iterations_limit_the_warm_started_solves_only(monkeypatch):
+def test_calibration_iterations_limit_the_first_and_the_warm_started_solves(monkeypatch):
     """calibration.solve_iterations=k: a frame's first density solve runs the solver's
-    max_iters from zero, every later one k iterations from the frame's previous density."""
+    max_iters from zero (or calibration.first_iterations), every later one k iterations from the
+    frame's previous density; the run's own solve keeps the solver's max_iters."""
     import flamerecon as fr
     from flamerecon.fit import reconstruct as reconstruction
 
@@ -329,8 +330,12 @@ def test_calibration_solve_iterations_limit_the_warm_started_solves_only(monkeyp
     scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32)
     fr.reconstruct(scene, options)
     assert calls == [(12, True), (4, False), (4, False), (12, True)]  # the last: the run's own solve
-    with pytest.raises(ArgumentError, match="calibration.solve_iterations"):
-        RefineOptions(refine="pose", solve_iterations=0)
+    calls.clear()
+    fr.reconstruct(scene, options.replace(calibration=replace(options.calibration, first_iterations=7)))
+    assert calls == [(7, True), (4, False), (4, False), (12, True)]
+    for name in ("first_iterations", "solve_iterations"):
+        with pytest.raises(ArgumentError, match=f"calibration.{name}"):
+            RefineOptions(refine="pose", **{name: 0})
 
 
 @pytest.fixture(scope="module")

@@ -108,6 +108,7 @@ RULES: dict[str, Rule] = {
     "calibration.frames": Rule(list_of(integer(0), what="a list of frame indices >= 0")),
     "calibration.gauge": Rule(choice("mean", "similarity")),
     "calibration.rig": Rule(boolean),
+    "calibration.first_iterations": Rule(integer(1), null=True),
     "calibration.solve_iterations": Rule(integer(1), null=True),
     "calibration.seed": Rule(integer(0)),
     "calibration.folder": Rule(text, null=True),

@@ -435,8 +435,9 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
 
         def solve_density(views: list[int], cameras, start: torch.Tensor | None) -> torch.Tensor:
             fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
-            if start is not None and refining.solve_iterations is not None and "max_iters" in fold.solver.params:
-                fold = fold.replace(solver=fold.solver.with_values(max_iters=refining.solve_iterations))
+            budget = refining.first_iterations if start is None else refining.solve_iterations
+            if budget is not None and "max_iters" in fold.solver.params:
+                fold = fold.replace(solver=fold.solver.with_values(max_iters=budget))
             setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid,
                           scored=False)
             x0 = None if start is None else hull_values(start, grid, setup.voxel_index)

@@ -92,6 +92,9 @@ class RefineOptions:
       ones included (they are one rig): the frame reconstructed must not be one of ``frames``,
       so that a held-out camera's pixels of a scored frame never enter the fit. Off (the
       *strict* protocol): held-out cameras keep the calibration file's pose;
+    - ``first_iterations``: iterations of each frame's first density solve (from zero, with
+      the capture's cameras); None: the solver's own ``max_iters``. The cameras need the
+      density's structure, not its last digits;
     - ``solve_iterations``: iterations of each density solve after the first one of a frame,
       warm-started from that frame's previous density (the cameras moved by a fraction of a
       pixel, so the density barely changes); None: the solver's own ``max_iters``;
@@ -120,6 +123,7 @@ class RefineOptions:
     frames: tuple[int, ...] = ()
     gauge: str = "mean"
     rig: bool = False
+    first_iterations: int | None = None
     solve_iterations: int | None = None
     seed: int = 0
     folder: str | None = None
@@ -426,7 +430,7 @@ class CalibrationFrame:
     bool of every camera of the scene, and ``solve(views, cams, start)``: the density (C, nz,
     ny, nx) fitted to this frame's views ``views`` seen by the cameras ``cams`` (len(views)),
     from ``start`` (a density of the same box, the frame's previous one) with
-    ``solve_iterations`` iterations, or from zero with the solver's own (``start`` None)."""
+    ``solve_iterations`` iterations, or from zero with ``first_iterations`` (``start`` None)."""
 
     images: torch.Tensor
     masks: torch.Tensor
