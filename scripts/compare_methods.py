@@ -12,7 +12,10 @@ ones (an empty one is the scene's default); every frame is loaded once and recon
 each method through the Python API, as ``python train.py`` would. Report on frames that chose
 none of the settings compared (say which did). Prints one row per frame and method (held-out
 PSNR, SSIM and detail correlation full frame and inside the captured silhouettes, training PSNR
-and detail, the black floor), then the means over frames; ``--out`` writes every figure as JSON.
+and detail, the black floor), then the means over frames; ``--out`` writes every figure as JSON;
+``--figure FOLDER`` draws each frame's held-out views: the capture and every method's render
+side by side, titled with PSNR and detail, and their fine-detail bands below (what the detail
+correlation compares: a blurred render has a flat grey band).
 """
 
 from __future__ import annotations
@@ -33,6 +36,11 @@ from flamerecon.run.cli import (
     run_script,
     script_parser,
 )
+from flamerecon.evaluate.metrics import detail_band
+from flamerecon.evaluate.scores import detail_sigma
+from flamerecon.geometry.cameras import camera_subset
+from flamerecon.outputs.figures import detail_comparison, write_png
+from flamerecon.outputs.names import file_stem
 from flamerecon.run.leave_one_out import leave_one_out
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
@@ -46,6 +54,20 @@ def method(text: str) -> tuple[str, list[str]]:
     return name, overrides.split()
 
 
+def write_figures(folder: Path, frame: int, scene, renders: dict) -> None:
+    """heldout-FRAME-VIEW.png per held-out view of ``scene``: the capture, then each method's
+    render titled with its PSNR and detail (``renders``: name -> ({view: render (C, H, W)}, its
+    held-out scores)), the fine-detail bands below (:func:`detail_comparison`)."""
+    sigma = detail_sigma(scene)
+    for view in next(iter(renders.values()))[0]:
+        images = [scene.images[scene.views.index(view)], *(r[view] for r, _ in renders.values())]
+        titles = [f"captured {view}, frame {frame}",
+                  *(f"{name}: {held[view]['psnr']:.2f} dB, detail {held[view]['detail']:.3f}"
+                    for name, (_, held) in renders.items())]
+        figure = detail_comparison(images, [detail_band(img.float().cpu(), sigma).mean(0) for img in images], titles)
+        write_png(folder / f"heldout-{frame}-{file_stem(view)}.png", figure)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides shared by every method")
@@ -55,6 +77,9 @@ def main(argv: list[str] | None = None) -> int:
                         "(strict protocol: each held-out camera as the calibration file gives it)")
     parser.add_argument("--rig", action="store_true", help="with --loo, also the rig-calibrated leave-one-view-out "
                         "(calibration.rig=true: every camera refined on calibration.frames, never scored)")
+    parser.add_argument("--figure", type=output_folder, metavar="FOLDER",
+                        help="write FOLDER/heldout-FRAME-VIEW.png per frame and held-out view: the capture and "
+                        "each method's render (PSNR and detail in the titles), their fine-detail bands below")
     parser.add_argument("--out", type=output_file, help="JSON file of every figure (with --loo, the folds' run "
                         "folders go into the folder of its name without suffix; default outputs/compare)")
     args = parser.parse_args(argv)
@@ -77,13 +102,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'frame':>5} {'method':<12} " + " ".join(f"{h:>{f.split('.')[0]}}" for _, h, f in columns),
               flush=True)
         for frame in args.frames:
-            scene = None
+            scene, renders = None, {}
             for name, extra in args.method:
                 cfg = compose_train([*args.overrides, *extra, f"scene.frame={frame}"])
                 scene = scene if scene is not None else load_scene(cfg.scene)
                 clock = time.perf_counter()
-                metrics = fr.score(fr.reconstruct(scene, options_from_config(cfg)))
+                result = fr.reconstruct(scene, options_from_config(cfg))
+                metrics = fr.score(result)
                 held = metrics["heldout"]
+                if args.figure:
+                    views = [scene.views[v] for v in result.setup.holdout]
+                    renders[name] = (dict(zip(views, fr.render(result.density, result.grid, camera_subset(
+                        result.scene.cameras, result.setup.holdout), result.setup.step))), held)
                 row = {"frame": frame, "method": name, "overrides": extra,
                        "heldout": mean_of(held, "psnr"), "ssim": mean_of(held, "ssim"),
                        "detail": mean_of(held, "detail"), "detail_sil": mean_of(held, "detail_silhouette"),
@@ -103,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(line(str(frame), name, row), flush=True)
                 if args.out:
                     write_json_atomic(args.out, {"shared": args.overrides, "rows": rows})
+            if args.figure:
+                write_figures(args.figure, frame, scene, renders)
         for name, _ in args.method:
             mine = [r for r in rows if r["method"] == name]
             print(line("mean", name, {k: sum(r[k] for r in mine) / len(mine) for k, _, _ in columns}))

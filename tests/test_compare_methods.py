@@ -35,3 +35,26 @@ def test_each_method_is_scored_on_each_frame_and_a_heavy_penalty_predicts_worse(
 def test_a_method_without_a_name_is_refused_by_argparse():
     with pytest.raises(SystemExit):
         compare_methods.main(["--frames", "0", "--method", "=solver.l1_rel=0"])
+
+
+def test_the_figure_shows_the_capture_and_each_method_with_its_detail_band(tmp_path):
+    """--figure: one PNG per frame and held-out view, the capture and every method in a row
+    (the methods' titles carry their scores), their detail bands in a row below; a blurred
+    render's band is flatter than the capture's."""
+    import cv2
+    import numpy as np
+
+    from flamerecon.outputs.figures import TITLE_PX
+
+    code = compare_methods.main(["scene=synthetic", *TINY, "--frames", "0", "--figure", str(tmp_path / "fig"),
+                                 "--method", "plain=", "--method", "blurred=solver.l1_rel=0.5"])
+    assert code == 0
+    files = sorted(p.name for p in (tmp_path / "fig").iterdir())
+    assert files == ["heldout-0-cam04.png"]  # the tiny scene holds out cam04
+    figure = cv2.imread(str(tmp_path / "fig" / files[0]))
+    H = figure.shape[0] // 2 - TITLE_PX
+    W = figure.shape[1] // 3
+    assert figure.shape[1] == 3 * W and figure.shape[0] == 2 * (TITLE_PX + H)
+    bands = [figure[2 * TITLE_PX + H:, k * W:(k + 1) * W].astype(float) for k in range(3)]
+    spread = [float(np.abs(b - 127.5).mean()) for b in bands]
+    assert spread[2] < spread[0]  # the heavily penalised render keeps less of the capture's detail

@@ -63,6 +63,32 @@ def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "
     return figure
 
 
+def detail_comparison(images: Sequence[torch.Tensor], bands: Sequence[torch.Tensor],
+                      titles: Sequence[str]) -> np.ndarray:
+    """One view's images (C, H, W) in [0, 1] side by side (the capture first, then renders),
+    each titled, and under each its fine-detail band (H, W) (what the detail correlation
+    compares, :func:`~flamerecon.evaluate.metrics.detail_band`): grey is none, white and black
+    the first band's 99th percentile of |value| and beyond. (2 (TITLE_PX + H), len(images) W, 3)
+    uint8."""
+    if not len(images) == len(bands) == len(titles) or not images:
+        raise ValueError(f"detail_comparison: {len(images)} images, {len(bands)} bands, {len(titles)} titles")
+    scale = float(torch.quantile(bands[0].detach().float().cpu().abs().flatten(), 0.99)) or 1.0
+    H, W = images[0].shape[-2:]
+    rows = []
+    for row_titles, panels in (
+        (titles, [(to_display(img).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8) for img in images]),
+        (["detail band"] + [""] * (len(bands) - 1),
+         [np.repeat(((band.detach().float().cpu() / scale).clamp(-1, 1).numpy() * 127.5 + 127.5
+                     ).astype(np.uint8)[..., None], 3, -1) for band in bands])):
+        row = np.zeros((TITLE_PX + H, len(images) * W, 3), np.uint8)
+        row[TITLE_PX:] = np.concatenate(panels, axis=1)
+        for n, title in enumerate(row_titles):
+            cv2.putText(row, title, (n * W + 2, TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                        (255, 255, 255), 1, cv2.LINE_AA)
+        rows.append(row)
+    return np.concatenate(rows, axis=0)
+
+
 def _numpy(value) -> np.ndarray:
     if isinstance(value, torch.Tensor):
         value = value.detach().float().cpu().numpy()
