@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+
 import flamerecon as fr
 from flamerecon.fit.reconstruct import mean_of
 from flamerecon.outputs.atomic import write_json_atomic
@@ -60,12 +62,31 @@ def write_figures(folder: Path, frame: int, scene, renders: dict) -> None:
     held-out scores)), the fine-detail bands below (:func:`detail_comparison`)."""
     sigma = detail_sigma(scene)
     for view in next(iter(renders.values()))[0]:
-        images = [scene.images[scene.views.index(view)], *(r[view] for r, _ in renders.values())]
+        images = [scene.images[scene.views.index(view)], *(r[view].cpu() for r, _ in renders.values())]
         titles = [f"captured {view}, frame {frame}",
                   *(f"{name}: {held[view]['psnr']:.2f} dB, detail {held[view]['detail']:.3f}"
                     for name, (_, held) in renders.items())]
-        figure = detail_comparison(images, [detail_band(img.float().cpu(), sigma).mean(0) for img in images], titles)
+        bands = [detail_band(img.float(), sigma).mean(0) for img in images]
+        rows, cols = crop_box(images, CROP_MARGIN_PX)
+        figure = detail_comparison([img[:, rows, cols] for img in images], [b[rows, cols] for b in bands], titles)
         write_png(folder / f"heldout-{frame}-{file_stem(view)}.png", figure)
+
+
+#: pixels kept around what the figure shows
+CROP_MARGIN_PX = 24
+
+
+def crop_box(images: list, margin: int) -> tuple[slice, slice]:
+    """The rows and columns of images (C, H, W) where any of them exceeds 5% of its peak,
+    grown by ``margin`` pixels (the whole frame when every image is black): the figure shows
+    the plume and its ghosts, not the empty frame around them."""
+    H, W = images[0].shape[-2:]
+    lit = sum((img.float().mean(0) > 0.05 * float(img.max())) for img in images if float(img.max()) > 0)
+    if not torch.is_tensor(lit) or not bool(lit.any()):
+        return slice(0, H), slice(0, W)
+    ys, xs = lit.nonzero(as_tuple=True)
+    return (slice(max(0, int(ys.min()) - margin), min(H, int(ys.max()) + margin + 1)),
+            slice(max(0, int(xs.min()) - margin), min(W, int(xs.max()) + margin + 1)))
 
 
 def main(argv: list[str] | None = None) -> int:

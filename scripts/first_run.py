@@ -2,7 +2,7 @@
 with an empty calibration folder (the cameras fitted, then the frame), then on frame B reading
 the cameras fitted (a later frame); prints each run's wall time, its split and the load average.
 
-    python scripts/first_run.py [--frames 65 5] [--out FOLDER] [train.py overrides ...]
+    python scripts/first_run.py [--frames 65 67] [--out FOLDER] [train.py overrides ...]
 
 ``scene=scalarflow`` unless the overrides choose a scene. Each run is a ``train.py`` process
 as a user starts it (imports, loading, outputs included), into ``FOLDER/frame<N>`` with
@@ -54,8 +54,9 @@ def report(what: str, frame: int, seconds: float, metrics: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
-    parser.add_argument("--frames", type=at_least(0), nargs=2, default=[65, 5], metavar=("A", "B"),
-                        help="the first run's frame and the later frame's (default: 65 5)")
+    parser.add_argument("--frames", type=at_least(0), nargs=2, default=[65, 67], metavar=("A", "B"),
+                        help="the first run's frame and the later frame's (default: 65 67, both holding as much "
+                        "smoke as the video's later frames; an early frame holds little and solves faster)")
     parser.add_argument("--out", type=output_folder, help="keep the runs and the calibration file here")
     parser.add_argument("overrides", nargs="*", help="train.py overrides")
     args = parser.parse_args(argv)
