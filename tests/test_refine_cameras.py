@@ -338,6 +338,32 @@ def test_calibration_iterations_limit_the_first_and_the_warm_started_solves(monk
             RefineOptions(refine="pose", **{name: 0})
 
 
+def test_select_auto_chooses_the_camera_fits_weights_once_per_frame(monkeypatch):
+    """select.auto with a camera fit: the frame's first density solve chooses the weights, its
+    warm-started solves reuse them (a selection costs several solves), and the run's own solve
+    chooses again with the refined cameras."""
+    import flamerecon as fr
+    from flamerecon.fit import reconstruct as reconstruction
+
+    weights, selections = [], []
+    real_fit, real_select = reconstruction.fit, reconstruction.select_weights
+    monkeypatch.setattr(reconstruction, "fit", lambda setup, options, *a, **k: weights.append(
+        (options.select.auto, options.solver.l1_rel)) or real_fit(setup, options, *a, **k))
+    monkeypatch.setattr(reconstruction, "select_weights", lambda *a, **k: selections.append(1) or real_select(*a, **k))
+    candidates = {"fista": ({"l1_rel": 0.3}, {"l1_rel": 0.01})}
+    options = fr.ReconstructionOptions(
+        grid=fr.GridOptions(resolution=16), solver=fr.SolverOptions("fista", l1_rel=0.5, params={"max_iters": 10}),
+        select=fr.SelectOptions(auto=True, candidates=candidates, iterations=5),
+        calibration=RefineOptions(refine="pose", rounds=3, iterations=1), device="cpu")
+    scene = fr.load_scene("synthetic", n_cameras=5, width=48, height=36, phantom_resolution=32)
+    result = fr.reconstruct(scene, options)
+    assert len(selections) == 2
+    first_choice = weights[1][1]
+    assert first_choice in (0.3, 0.01)
+    assert weights[0] == (True, 0.5) and weights[1:3] == [(False, first_choice)] * 2 and weights[3] == (True, 0.5)
+    assert result.fit.selection is not None
+
+
 @pytest.fixture(scope="module")
 def refined_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("refined")

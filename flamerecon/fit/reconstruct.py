@@ -432,16 +432,22 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
 
     def frame_of(source: Scene) -> CalibrationFrame:
         images = source.images.to(device)
+        chosen: list[dict] = []  # the weights select.auto chose for the frame's first solve
 
         def solve_density(views: list[int], cameras, start: torch.Tensor | None) -> torch.Tensor:
             fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
+            if start is not None and chosen:  # weights are chosen once per frame, not at every round
+                fold = fold.replace(solver=fold.solver.with_values(**chosen[0]), select=replace(fold.select, auto=False))
             budget = refining.first_iterations if start is None else refining.solve_iterations
             if budget is not None and "max_iters" in fold.solver.params:
                 fold = fold.replace(solver=fold.solver.with_values(max_iters=budget))
             setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid,
                           scored=False)
             x0 = None if start is None else hull_values(start, grid, setup.voxel_index)
-            return setup.volume(fit(setup, fold, x0).result.x)
+            fitted = fit(setup, fold, x0)
+            if start is None and not chosen and fitted.selection is not None:
+                chosen.append(dict(fitted.selection["chosen"]))
+            return setup.volume(fitted.result.x)
 
         return CalibrationFrame(images, scene_masks(source, images, options), solve_density)
 
