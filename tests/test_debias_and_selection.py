@@ -13,7 +13,8 @@ from hydra import compose, initialize_config_dir
 from flamerecon.errors import ConfigError
 from flamerecon.evaluate.scores import render_scene_views, score_views
 from flamerecon.fit.debias import DebiasOptions, debias, training_gain
-from flamerecon.fit.weight_selection import RowSubset, SelectionOptions, fold_views, select_weights
+from flamerecon.fit.weight_selection import RowSubset, SelectionOptions, fold_views, row_subset, select_weights
+from flamerecon.operators.sparse import CsrOperator
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.geometry.hull import hull_footprint
 from flamerecon.operators.projector import render_image
@@ -104,6 +105,23 @@ def test_row_subset_passes_the_dot_test_and_keeps_the_rows(tiny):
     rhs = float((x.double() * sub.adjoint(y).double()).sum())
     assert lhs == pytest.approx(rhs, rel=1e-5)
     assert torch.equal(sub.forward(x), setup.operator.forward(x)[rows])
+
+
+def test_an_assembled_operators_rows_are_sliced_out_with_the_same_products(tiny):
+    """row_subset of a CsrOperator: a CsrOperator of the rows kept, whose A x and A^T y equal
+    the full operator's restricted (forward) and zero-filled (adjoint) products bit for bit."""
+    _, _, setup = tiny
+    A = setup.operator
+    rows = torch.cat([torch.arange(0, A.shape[0] // 3), torch.arange(A.shape[0] // 2, A.shape[0], 2)])
+    sub = row_subset(A, rows)
+    assert isinstance(sub, CsrOperator) and sub.shape == (rows.numel(), A.shape[1])
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(A.shape[1], 3, generator=g)
+    y = torch.rand(rows.numel(), 3, generator=g)
+    view = RowSubset(A, rows)
+    assert torch.equal(sub.forward(x), view.forward(x))
+    assert torch.equal(sub.adjoint(y), view.adjoint(y))
+    assert sub.nnz < A.nnz
 
 
 def test_fold_views_spread_over_the_training_cameras():

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import torch
 
 from flamerecon.fit.debias import DebiasOptions, debias
+from flamerecon.operators.sparse import CsrOperator
 from flamerecon.solvers import LinearOperator, Problem, make_solver, resolve_l1
 
 
@@ -57,6 +58,12 @@ class RowSubset:
         return self.A.adjoint(full)
 
 
+def row_subset(A: LinearOperator, rows: torch.Tensor) -> LinearOperator:
+    """The rows ``rows`` (R,) ascending of ``A``: sliced out of an assembled operator (a
+    product then reads only those rows), else a :class:`RowSubset` view."""
+    return A.rows(rows) if isinstance(A, CsrOperator) else RowSubset(A, rows)
+
+
 def fold_views(num_train: int, folds: int) -> list[int]:
     """Positions (in the training list) of the cameras left out in turn: all of them, or
     ``folds`` evenly spread ones."""
@@ -91,8 +98,8 @@ def select_weights(solver: str, options: dict, selection: SelectionOptions, debi
     for k in held:
         keep = (row_view != k).nonzero().squeeze(1)
         out = (row_view == k).nonzero().squeeze(1)
-        A_fit, b_fit = RowSubset(A, keep), b[keep]
-        A_out, b_out = RowSubset(A, out), b[out]
+        A_fit, b_fit = row_subset(A, keep), b[keep]
+        A_out, b_out = row_subset(A, out), b[out]
         outside = float((view_energy[k].double().sum() - (b_out.double() ** 2).sum()).clamp_min(0))
         x = None
         for c, overrides in enumerate(selection.candidates):

@@ -87,6 +87,19 @@ class CsrOperator:
         AT = _csr32(ccol, rows[order], values[order], (M, N))
         return cls(A, AT)
 
+    def rows(self, index: torch.Tensor) -> CsrOperator:
+        """The operator of the rows ``index`` (R,) ascending: (R, M), A and A^T sliced from the
+        stored ones (the same sums in the same order, without the rows left out), so a product
+        reads only the rows kept."""
+        index = index.to(self.device, torch.long)
+        crow = self.A.crow_indices().long()
+        starts, counts = crow[index], crow[index + 1] - crow[index]
+        row = torch.repeat_interleave(torch.arange(index.numel(), device=self.device), counts)
+        offset = torch.cumsum(counts, 0) - counts
+        entry = starts.index_select(0, row) + torch.arange(row.numel(), device=self.device) - offset.index_select(0, row)
+        return CsrOperator.from_sorted_coo(row, self.A.col_indices().long()[entry], self.A.values()[entry],
+                                           (index.numel(), self.shape[1]))
+
     @property
     def nnz(self) -> int:
         return int(self.A.values().numel())
