@@ -89,7 +89,8 @@ def run(args) -> None:
                 for s, d in sorted(moves.items()):
                     print(f"  {fit_to} smooth={smooth:g}: {t}->{frames_here[s]} shift {d.shift}, mean "
                           f"{d.record()['mean_cells']} cells, residual none {d.residual_none:.3f} / shift "
-                          f"{d.residual_shift:.3f} / fitted {d.residual:.3f}", flush=True)
+                          f"{d.residual_shift:.3f} / fitted {d.residual:.3f}; "
+                          + neighbour_residuals(frames, target, s, d), flush=True)
                 for window in args.windows:
                     for decay in (args.decay if window > 1 else [0.0]):
                         if window == 1 and (fit_to, smooth) != (args.fit_to[0], args.smooth[0]):
@@ -124,6 +125,32 @@ def run(args) -> None:
         print(f"{'mean':>5} {key[0]:>6} {key[1]:<34} {np.mean([r[3] for r in sel]):7.2f} "
               f"{np.mean([r[4] for r in sel]):7.4f} {np.mean([r[5] for r in sel]):7.3f} "
               f"{np.mean([r[6] for r in sel]):7.2f}  ({len(sel)} frames)")
+
+
+def neighbour_residuals(frames, target: int, s: int, d) -> str:
+    """How well frame ``target``'s own solution, carried by ``d``, explains frame ``s``'s pixels
+    (||A_s W x_t - b_s||^2 / ||b_s||^2), beside u = 0 and frame s's own solution; and the part of
+    the displacement that is not its mean translation (RMS over the target's hull, cells)."""
+    import torch
+
+    from flamerecon.operators.warp import warp_matrix
+
+    here, there = frames[target].setup, frames[s].setup
+    b = there.pixels.double()
+    norm = float(b.pow(2).sum())
+
+    def rel(y):
+        return float((y.double() - b).pow(2).sum()) / norm
+
+    x = frames[target].fit.result.x
+    moved = rel(there.operator.forward(warp_matrix(d.u, here.voxel_index, there.voxel_index).forward(x)))
+    still = rel(there.operator.forward(warp_matrix(torch.zeros_like(d.u), here.voxel_index,
+                                                   there.voxel_index).forward(x)))
+    own = rel(there.operator.forward(frames[s].fit.result.x))
+    u = d.u.reshape(3, -1)[:, here.voxel_index.cpu()]
+    spread = float((u - u.mean(1, keepdim=True)).pow(2).sum(0).mean().sqrt())
+    return (f"neighbour pixels by x_t: u=0 {still:.4f}, moved {moved:.4f}, own x_s {own:.4f}; "
+            f"non-translation {spread:.2f} cells")
 
 
 def static_window(frames, target: int) -> dict:
