@@ -33,6 +33,8 @@ NOT_APPLICABLE = {
     ("Reconstruction", "range"): "holds typed objects only, each checked when made",
     ("JointReconstruction", "shape"): "holds typed objects only, each checked when made",
     ("JointReconstruction", "range"): "holds typed objects only, each checked when made",
+    ("MotionReconstruction", "shape"): "holds typed objects and the solve's own result, each checked when made",
+    ("MotionReconstruction", "range"): "holds typed objects and the solve's own result, each checked when made",
     ("make_problem", "shape"): "takes a SolverOptions and a Setup, each checked when made",
     ("make_problem", "range"): "takes a SolverOptions and a Setup, each checked when made",
     ("build", "shape"): "takes a Scene, options and a grid, each checked when made",
@@ -51,9 +53,10 @@ def w():
                  setup.holdout, None, None, {}, {})
     later = fr.load_scene("synthetic", width=24, height=18, n_cameras=3, phantom_resolution=16, frame=1)
     joint = fr.reconstruct_frames([scene, later], options)
+    motion = fr.reconstruct_motion([scene, later], options, fr.MotionOptions(window=1), target=0)
     problem, solver, _ = fr.make_problem(options.solver, setup)
     M, C = int(setup.voxel_index.numel()), int(setup.pixels.shape[1])
-    return SimpleNamespace(scene=scene, options=options, setup=setup, rec=rec, run=run, joint=joint,
+    return SimpleNamespace(scene=scene, options=options, setup=setup, rec=rec, run=run, joint=joint, motion=motion,
                            problem=problem, solver=solver, M=M, C=C)
 
 
@@ -95,6 +98,10 @@ CASES = [
     ("HullOptions", "type", lambda w: fr.HullOptions(margin_voxels="1"), TYPE, "hull.margin_voxels"),
     ("HullOptions", "shape", lambda w: fr.HullOptions(margin_voxels=(1, 1)), TYPE, "hull.margin_voxels"),
     ("HullOptions", "range", lambda w: fr.HullOptions(margin_voxels=-1), VALUE, "hull.margin_voxels"),
+    ("MotionOptions", "none", lambda w: fr.MotionOptions(window=None), TYPE, "motion.window"),
+    ("MotionOptions", "type", lambda w: fr.MotionOptions(fit_to=1), TYPE, "motion.fit_to"),
+    ("MotionOptions", "shape", lambda w: fr.MotionOptions(decay=[0.5]), TYPE, "motion.decay"),
+    ("MotionOptions", "range", lambda w: fr.MotionOptions(window=2), VALUE, "motion.window"),
     ("JointFramesOptions", "none", lambda w: fr.JointFramesOptions(l2=None), TYPE, "temporal.l2"),
     ("JointFramesOptions", "type", lambda w: fr.JointFramesOptions(motion=1), TYPE, "temporal.motion"),
     ("JointFramesOptions", "shape", lambda w: fr.JointFramesOptions(l2=[0.1]), TYPE, "temporal.l2"),
@@ -163,6 +170,14 @@ CASES = [
      "reconstruct.init"),
     ("reconstruct", "range", lambda w: fr.reconstruct(w.scene, w.options, init=nan_at_start(w.rec.density)),
      VALUE, "reconstruct.init"),
+    ("reconstruct_motion", "none", lambda w: fr.reconstruct_motion(None, w.options), TYPE,
+     "reconstruct_motion.scenes"),
+    ("reconstruct_motion", "type", lambda w: fr.reconstruct_motion(w.scene, w.options), TYPE,
+     "reconstruct_motion.scenes"),
+    ("reconstruct_motion", "shape", lambda w: fr.reconstruct_motion([], w.options), VALUE,
+     "reconstruct_motion.scenes"),
+    ("reconstruct_motion", "range", lambda w: fr.reconstruct_motion([w.scene], w.options, target=5), VALUE,
+     "reconstruct_motion.target"),
     ("reconstruct_frames", "none", lambda w: fr.reconstruct_frames(None, w.options), TYPE,
      "reconstruct_frames.scenes"),
     ("reconstruct_frames", "type", lambda w: fr.reconstruct_frames(w.scene, w.options), TYPE,
@@ -235,6 +250,9 @@ CASES = [
     ("Fit", "none", lambda w: replace(w.rec.fit, options=None), TYPE, "Fit.options"),
     ("Fit", "type", lambda w: replace(w.rec.fit, result=w.rec.density), TYPE, "Fit.result"),
     ("Fit", "range", lambda w: replace(w.rec.fit, l1=-1.0), VALUE, "Fit.l1"),
+    ("MotionReconstruction", "none", lambda w: replace(w.motion, setup=None), TYPE, "MotionReconstruction.setup"),
+    ("MotionReconstruction", "type", lambda w: replace(w.motion, frames=[w.scene]), TYPE,
+     "MotionReconstruction.frames"),
     ("JointReconstruction", "none", lambda w: replace(w.joint, frames=None), TYPE, "JointReconstruction.frames"),
     ("JointReconstruction", "type", lambda w: replace(w.joint, frames=[w.scene]), TYPE,
      "JointReconstruction.frames"),
