@@ -91,7 +91,8 @@ def test_an_image_size_is_never_coerced(value, message):
 
 
 @pytest.mark.parametrize("key, value", [("width", "48"), ("width", 4.5), ("n_cameras", 1), ("noise", -0.1),
-                                        ("peak", "0.8"), ("phantom_step", 0), ("frame", -1), ("seed", 0.5)])
+                                        ("peak", "0.8"), ("phantom_step", 0), ("frame", -1), ("seed", 0.5),
+                                        ("field", "candle"), ("calibration_error", -1.0), ("azimuths", [0, 90])])
 def test_the_synthetic_loader_reads_its_config_through_the_reader(key, value):
     with pytest.raises(SceneError, match=rf"^config: scene\.{key}: got "):
         load_synthetic({"name": "synthetic", key: value})

@@ -20,6 +20,10 @@ from tests.helpers import FAST, REPO, TINY, tiny_cfg, tmpfs
 
 SCRIPTS = sorted(p.stem for p in (REPO / "scripts").glob("*.py"))
 SYNTHETIC = ["scene=synthetic", *TINY, *FAST]
+#: the synthetic flame benchmark's scene (7 cameras) and every method's options, tiny
+FLAME = ["scene.width=48", "scene.height=36", "scene.downscale=1", "scene.phantom_resolution=32", "grid.resolution=12",
+         *FAST, "device=cpu", "calibration.rounds=1", "calibration.iterations=1", "select.iterations=5",
+         "select.folds=2"]
 REAL = REPO.parent / "shared" / "data" / "scalarflow_real"
 ERROR = "flamerecon: error: "
 
@@ -95,6 +99,8 @@ CALLS = {
     "first_run": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC, "calibration.refine=pose",
                                         "calibration.frames=[2]", "calibration.rounds=1", "calibration.iterations=1"],
                   r"first run \(frame \d+, cameras fitted\): .* s wall .*, detail \d\.\d+;.*\nlater frame \(frame \d+, cameras read\): .*"),
+    "flame_benchmark": (lambda t, run, dump: ["--seeds", "0", *FLAME, "--out", str(t / "new" / "f.json")],
+                        r"mean +opencv .* dB over nnls"),
     "heldout_limits": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0"], r"    0 cam04 "),
     "leave_one_out": (lambda t, run, dump: [*TINY, *FAST, "--views", "cam00", "--out", str(t / "loo")],
                       r"cam00: PSNR"),
@@ -188,6 +194,8 @@ BAD = [
     ("default_solve_cost", ["--solvers", "fista:max_iters"], r"argument --solvers: .*'max_iters' is not key=number"),
     ("default_solve_cost", ["--repeats", "0"], r"argument --repeats: got '0'; give an integer >= 1"),
     ("motion_eval", ["--windows", "1,2"], r"argument --windows: got 2; window lengths are odd"),
+    ("flame_benchmark", ["--seeds", "x"], r"argument --seeds: expected comma-separated seeds >= 0, got 'x'"),
+    ("flame_benchmark", ["--method", "x"], r"argument --method: expected NAME=OVERRIDES, got 'x'"),
     ("heldout_limits", ["--frames", "a"], r"argument --frames: expected comma-separated frame numbers"),
     ("assemble", ["SWEEP", "--no-such-flag"], r"unrecognized arguments: --no-such-flag"),
     ("export", ["RUN", "--iso", "x"], r"argument --iso: invalid float value: 'x'"),

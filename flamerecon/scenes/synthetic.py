@@ -4,6 +4,11 @@ reconstruction uses, plus sensor noise (no inverse crime).
 
 World units are arbitrary lengths; y is up. The flame stands on y = 0 inside the box
 x, z in [-0.5, 0.5], y in [0, 1.5]. ``frame`` advances time (a rising, flickering flame).
+
+Harder, more real variants (conf/scene/synthetic_flame.yaml): ``field: smooth`` (a smooth,
+laminar flame, as a real flame looks at camera resolution, instead of the turbulent one),
+``azimuths`` (unevenly spaced cameras) and ``calibration_error`` (the cameras the solver is
+given are off by that many pixels; the images were rendered by the true ones).
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from flamerecon.operators.projector import render_image
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.cache import cached
-from flamerecon.scenes.values import NONNEGATIVE, POSITIVE, read_float, read_int
+from flamerecon.scenes.values import NONNEGATIVE, POSITIVE, read_array, read_float, read_int, read_text
 
 #: the modules whose code makes the rendered scene (part of its cache key)
 _RENDER_CODE = ("flamerecon.scenes.synthetic", "flamerecon.operators.projector", "flamerecon.geometry.grid", "flamerecon.geometry.cameras")
@@ -75,15 +80,47 @@ def flame_emission(points: torch.Tensor, seed: int = 0, time: float = 0.0) -> to
     return rgb
 
 
-def flame_volume(grid: VoxelGrid, seed: int = 0, time: float = 0.0, device=None) -> torch.Tensor:
-    """The flame sampled at the cell centres of ``grid``: (3, nz, ny, nx)."""
-    return flame_emission(grid.centers(device), seed, time).permute(3, 0, 1, 2).contiguous()
+def smooth_flame_emission(points: torch.Tensor, seed: int = 0, time: float = 0.0) -> torch.Tensor:
+    """RGB emission density (…, 3) of a smooth, laminar flame at world points (…, 3).
+
+    A candle- or burner-like flame: a Gaussian cross-section around a centreline that leans and
+    sways slowly (low-frequency noise only, no tongues, no sharp edge), widest a third of the
+    way up, fading smoothly towards its tip; the same colours as :func:`flame_emission`.
+    """
+    x, y, z = points.unbind(-1)
+    advected = torch.stack([x, y - 0.5 * time, z], -1)
+    h = (y / 1.2).clamp(0.0, 1.0)
+    lean = 0.12 * h**1.5
+    sway = 0.03 * h**1.5 * math.sin(2 * math.pi * 0.8 * time)
+    cx = lean * _noise(advected * 0.6, seed + 1, octaves=1, base=3) + sway
+    cz = lean * _noise(advected * 0.6, seed + 2, octaves=1, base=3)
+    r2 = (x - cx) ** 2 + (z - cz) ** 2
+    width = 0.28 * (h + 0.03).clamp(max=1.0) ** 0.35 * (1 - h).clamp_min(0) ** 0.7 + 1e-3
+    width = width * (1 + 0.15 * _noise(advected * 0.8, seed + 3, octaves=1, base=3))
+    foot = torch.sigmoid((y - 0.03) / 0.015)  # the burner's rim: smooth, not a cut
+    temp = torch.exp(-r2 / (2 * width**2)) * (1 - 0.6 * h) * foot * (h < 1)
+    rgb = torch.stack([temp**0.8, 0.9 * temp**1.4, 0.7 * temp**2.5], -1)
+    return rgb
 
 
-def ring_cameras(n: int, width: int, height: int, radius: float = 3.0, focal: float | None = None):
+#: the emission fields of ``scene.field``
+FIELDS = {"turbulent": flame_emission, "smooth": smooth_flame_emission}
+
+
+def flame_volume(grid: VoxelGrid, seed: int = 0, time: float = 0.0, device=None,
+                 field: str = "turbulent") -> torch.Tensor:
+    """The flame (``field``: a key of :data:`FIELDS`) sampled at the cell centres of ``grid``:
+    (3, nz, ny, nx)."""
+    return FIELDS[field](grid.centers(device), seed, time).permute(3, 0, 1, 2).contiguous()
+
+
+def ring_cameras(n: int, width: int, height: int, radius: float = 3.0, focal: float | None = None,
+                 azimuths=None):
     """``n`` cameras on a horizontal ring around the flame, alternating between two
-    elevations, looking at its middle. Returns a kornia camera batch."""
-    angles = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    elevations, looking at its middle; ``azimuths`` (n degrees) place them, else evenly
+    spaced. Returns a kornia camera batch."""
+    angles = (torch.arange(n, dtype=torch.float64) * 2 * math.pi / n if azimuths is None
+              else torch.deg2rad(torch.as_tensor(azimuths, dtype=torch.float64)))
     elev = torch.deg2rad(10.0 + 8.0 * (-1.0) ** torch.arange(n, dtype=torch.float64))
     target = torch.tensor([0.0, 0.62, 0.0], dtype=torch.float64)
     eye = torch.stack(
@@ -93,6 +130,31 @@ def ring_cameras(n: int, width: int, height: int, radius: float = 3.0, focal: fl
     f = focal if focal is not None else 470.0 * height / 240.0
     K = intrinsics_matrix(f, f, width / 2.0, height / 2.0).expand(n, 3, 3)
     return make_cameras(K, look_at(eye, target.expand(n, 3)), height, width)
+
+
+def miscalibrated(cams, pixels: float, seed: int):
+    """``cams`` with a calibration error of ``pixels``: each camera turned about its own centre
+    by a random small rotation that shifts its image by ``pixels`` in a random direction, plus a
+    random roll about its axis that moves a point a quarter of the image height from the
+    principal point by up to half that. The same ``seed``, the same errors."""
+    g = torch.Generator(device="cpu").manual_seed(seed + 4242)
+    n = cams.batch_size
+    f = cams.intrinsics[:, 0, 0].double()
+    direction = torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi
+    tilt = pixels / f  # radians: a rotation about an axis across the view shifts by f * angle
+    roll = (torch.rand(n, generator=g, dtype=torch.float64) * 2 - 1) * 0.5 * pixels / (0.25 * cams.height.double())
+    omega = torch.stack([tilt * torch.sin(direction), tilt * torch.cos(direction), roll], -1)  # camera axes
+    theta = omega.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    k = omega / theta
+    Kx = torch.zeros(n, 3, 3, dtype=torch.float64)
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    Kx = Kx - Kx.transpose(1, 2)
+    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
+    dR = torch.eye(3, dtype=torch.float64) + s * Kx + (1 - c) * Kx @ Kx  # Rodrigues
+    E = cams.extrinsics.double().clone()
+    E[:, :3, :3] = dR @ E[:, :3, :3]  # about the camera centre: R' = dR R, t' = dR t
+    E[:, :3, 3:] = dR @ E[:, :3, 3:]
+    return make_cameras(cams.intrinsics[:, :3, :3], E, cams.height, cams.width)
 
 
 def _crop_to_support(volume: torch.Tensor, grid: VoxelGrid) -> tuple[torch.Tensor, VoxelGrid]:
@@ -131,27 +193,44 @@ def downscale(images: torch.Tensor, cams, factor: int):
 
 
 @register_scene("synthetic", keys=("n_cameras", "width", "height", "downscale", "frame", "seed",
-                                         "phantom_resolution", "phantom_step", "noise", "peak"))
+                                         "phantom_resolution", "phantom_step", "noise", "peak", "field",
+                                         "azimuths", "calibration_error"))
 def load(cfg) -> Scene:
     """Config keys: n_cameras, width, height (the native size), downscale (the working size is
     width // downscale x height // downscale), phantom_resolution, phantom_step, noise, frame,
-    seed, peak (brightest pixel before noise)."""
+    seed, peak (brightest pixel before noise), field (turbulent | smooth), azimuths (null:
+    evenly spaced; else n_cameras angles in degrees), calibration_error (pixels of the native
+    images by which every camera given to the solver, held-out ones too, is off from the one
+    that rendered its image; fixed by the seed, the same on every frame)."""
     n = read_int(cfg.get("n_cameras", 8), "config", "scene.n_cameras", 2)
     W, H = (read_int(cfg.get(k, default), "config", f"scene.{k}") for k, default in (("width", 320), ("height", 240)))
     seed = read_int(cfg.get("seed", 0), "config", "scene.seed", 0)
     frame = read_int(cfg.get("frame", 0), "config", "scene.frame", 0)
-    cams = ring_cameras(n, W, H)
+    field = read_text(cfg.get("field", "turbulent"), "config", "scene.field")
+    if field not in FIELDS:
+        raise SceneError(f"config: scene.field: got '{field}'; it must be one of {sorted(FIELDS)}")
+    azimuths = cfg.get("azimuths", None)
+    if azimuths is not None:
+        azimuths = read_array(azimuths, "config", "scene.azimuths")
+        if azimuths.shape != (n,):
+            raise SceneError(f"config: scene.azimuths: got {azimuths.tolist()}; it must be a list of "
+                             f"scene.n_cameras = {n} angles in degrees (or null: evenly spaced)")
+        azimuths = [float(a) for a in azimuths]
+    error_px = read_float(cfg.get("calibration_error", 0.0), "config", "scene.calibration_error", NONNEGATIVE)
+    cams = ring_cameras(n, W, H, azimuths=azimuths)
     phantom = read_int(cfg.get("phantom_resolution", 128), "config", "scene.phantom_resolution", 2)
     truth_grid = VoxelGrid.from_box(BOX_MIN, BOX_MAX, phantom)
     step = read_float(cfg.get("phantom_step", 0.5), "config", "scene.phantom_step", POSITIVE)
 
     def render() -> dict[str, torch.Tensor]:
-        truth = flame_volume(truth_grid, seed, frame * SECONDS_PER_FRAME)
+        truth = flame_volume(truth_grid, seed, frame * SECONDS_PER_FRAME, field=field)
         cropped, sub = _crop_to_support(truth, truth_grid)
         return {"truth": truth, "clean": render_image(cropped, sub, cams, step=step)}
 
     options = {"n_cameras": n, "width": W, "height": H, "seed": seed, "frame": frame,
-               "phantom_resolution": phantom, "phantom_step": step}
+               "phantom_resolution": phantom, "phantom_step": step,
+               **({"field": field} if field != "turbulent" else {}),  # the default's cache key as before
+               **({"azimuths": azimuths} if azimuths is not None else {})}
     found = cached("synthetic", options, render, [sys.modules[m] for m in _RENDER_CODE])
     truth, clean = found["truth"], found["clean"]
     peak = read_float(cfg.get("peak", 0.85), "config", "scene.peak", POSITIVE)
@@ -162,11 +241,15 @@ def load(cfg) -> Scene:
     # read noise sigma, growing with brightness like photon noise: std = sigma * sqrt(1 + 4 I)
     std = sigma * torch.sqrt(1 + 4 * clean.clamp_min(0))
     images = (clean + std * torch.randn(clean.shape, generator=g)).clamp(0, 1)
+    if error_px > 0:  # the images stay the true cameras' renders
+        cams = miscalibrated(cams, error_px, seed)
     images, cams = downscale(images, cams, read_int(cfg.get("downscale", 1), "config", "scene.downscale"))
     views = [f"cam{i:02d}" for i in range(n)]
     return Scene(
         name="synthetic", views=views, cameras=cams, images=images,
         bbox_min=BOX_MIN, bbox_max=BOX_MAX, default_holdout=[views[-1]],
-        truth=truth, truth_grid=truth_grid, source=f"synthetic flame (seed {seed}, frame {frame})",
-        meta={"frame": frame, "noise": sigma, "time": frame * SECONDS_PER_FRAME},
+        truth=truth, truth_grid=truth_grid, source=f"synthetic {'' if field == 'turbulent' else field + ' '}flame (seed {seed}, frame {frame})",
+        meta={"frame": frame, "noise": sigma, "time": frame * SECONDS_PER_FRAME,
+              **({"field": field} if field != "turbulent" else {}),
+              **({"calibration_error": error_px} if error_px > 0 else {})},
     )
