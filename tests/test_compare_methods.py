@@ -35,3 +35,14 @@ def test_each_method_is_scored_on_each_frame_and_a_heavy_penalty_predicts_worse(
 def test_a_method_without_a_name_is_refused_by_argparse():
     with pytest.raises(SystemExit):
         compare_methods.main(["--frames", "0", "--method", "=solver.l1_rel=0"])
+
+
+def test_a_method_that_changes_the_scene_gets_its_own_scene(tmp_path):
+    """scene.* in one method's overrides loads that scene (it was the first method's scene for
+    all: scene.downscale=2 in a method compared the 1/4-resolution images)."""
+    out = tmp_path / "compare.json"
+    code = compare_methods.main(["scene=synthetic", *TINY, "solver.max_iters=5", "--frames", "0", "--out", str(out),
+                                 "--method", "plain=", "--method", "half=scene.downscale=2"])
+    assert code == 0
+    plain, half = json.loads(out.read_text())["rows"]
+    assert plain["black"] != pytest.approx(half["black"], abs=1e-6)  # other captured images
