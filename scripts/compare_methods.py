@@ -8,8 +8,9 @@ all-black floor, and (``--loo``) the leave-one-view-out mean over every camera.
         [scene=scalarflow by default, train.py overrides shared by every method ...]
 
 Each ``--method NAME=OVERRIDES`` is a train.py run with those overrides on top of the shared
-ones (an empty one is the scene's default); every frame is loaded once and reconstructed by
-each method through the Python API, as ``python train.py`` would. Report on frames that chose
+ones (an empty one is the scene's default); every frame is loaded once (once per scene node
+when a method changes ``scene.*``, e.g. ``scene.downscale=2``) and reconstructed by each
+method through the Python API, as ``python train.py`` would. Report on frames that chose
 none of the settings compared (say which did). Prints one row per frame and method (held-out
 PSNR, SSIM and detail correlation full frame and inside the captured silhouettes, training PSNR
 and detail, the black floor), then the means over frames; ``--out`` writes every figure as JSON;
@@ -26,6 +27,7 @@ import time
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 import flamerecon as fr
 from flamerecon.fit.reconstruct import mean_of
@@ -123,10 +125,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'frame':>5} {'method':<12} " + " ".join(f"{h:>{f.split('.')[0]}}" for _, h, f in columns),
               flush=True)
         for frame in args.frames:
-            scene, renders = None, {}
+            scenes, renders = {}, {}  # scenes loaded once per frame and scene node: a method may change scene.*
             for name, extra in args.method:
                 cfg = compose_train([*args.overrides, *extra, f"scene.frame={frame}"])
-                scene = scene if scene is not None else load_scene(cfg.scene)
+                key = OmegaConf.to_yaml(cfg.scene)
+                scene = scenes[key] = scenes[key] if key in scenes else load_scene(cfg.scene)
                 clock = time.perf_counter()
                 result = fr.reconstruct(scene, options_from_config(cfg))
                 metrics = fr.score(result)
@@ -155,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
                 if args.out:
                     write_json_atomic(args.out, {"shared": args.overrides, "rows": rows})
             if args.figure:
-                write_figures(args.figure, frame, scene, renders)
+                write_figures(args.figure, frame, next(iter(scenes.values())), renders)
         for name, _ in args.method:
             mine = [r for r in rows if r["method"] == name]
             print(line("mean", name, {k: sum(r[k] for r in mine) / len(mine) for k, _, _ in columns}))

@@ -8,17 +8,24 @@ Per frame and held-out view, in dB: the run's PSNR; with the view's own least-sq
 (its exposure); with the render blurred by the Gaussian (0.5-3 px) that suits it best (a
 smoother prediction); with the view's pose refitted to its own image against the run's density
 (its calibration relative to the refined training cameras; Levenberg-Marquardt, 10 iterations).
+Then the detail correlation (README, Scores): the run's, at the best whole-pixel shift of the
+render (up to 3 px each way: how much a misregistration costs the fine band), with the pose
+refitted, and the ratio of the render's detail-band amplitude (std) to the capture's (how much
+fine structure the render has at all, in or out of place). ``--pictures DIR`` writes
+DIR/<frame>-<view>.png: captured | rendered over their detail bands.
 """
 
 from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
 
 import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
 
 # isort: split
 
+import cv2
 import kornia
 import torch
 
@@ -32,12 +39,40 @@ from flamerecon.fit.refine_cameras import (
     fit_pixels,
     prior_sizes,
 )
+from flamerecon.evaluate.metrics import detail_band, detail_correlation
+from flamerecon.evaluate.scores import detail_sigma
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.run.cli import compose_train, frame_list, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
 
 BLURS = (0.5, 1.0, 1.5, 2.0, 3.0)
+SHIFT_PX = 3
+
+
+def shifted_detail(rendered: torch.Tensor, captured: torch.Tensor, sigma: float) -> float:
+    """The best detail correlation of the render (C, H, W) moved by whole pixels (at most
+    :data:`SHIFT_PX` each way), both cropped by that margin so no wrapped pixel counts."""
+    m = SHIFT_PX
+    crop = (slice(None), slice(m, -m), slice(m, -m))
+    return max(detail_correlation(torch.roll(rendered, (dy, dx), (-2, -1))[crop], captured[crop], sigma)
+               for dy in range(-m, m + 1) for dx in range(-m, m + 1))
+
+
+def band_ratio(rendered: torch.Tensor, captured: torch.Tensor, sigma: float) -> float:
+    return float(detail_band(rendered.clamp(0, 1), sigma).std() / detail_band(captured, sigma).std())
+
+
+def picture(path: Path, rendered: torch.Tensor, captured: torch.Tensor, sigma: float) -> None:
+    """captured | rendered (gray, the capture's range) over their detail bands (mid-gray 0)."""
+    hi = float(captured.max()) or 1.0
+    bands = [detail_band(x.clamp(0, 1), sigma).mean(0) for x in (captured, rendered)]
+    half = 0.5 * float(bands[0].abs().max()) or 1.0
+    top = torch.cat([captured.mean(0) / hi, rendered.clamp(0, 1).mean(0) / hi], 1)
+    bottom = torch.cat([b / (2 * half) + 0.5 for b in bands], 1)
+    image = (torch.cat([top, bottom], 0).clamp(0, 1) * 255).round().byte().numpy()
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"could not write {path}")
 
 
 def psnr(rendered: torch.Tensor, captured: torch.Tensor) -> float:
@@ -69,11 +104,16 @@ def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
     parser.add_argument("--frames", type=frame_list, required=True, help="comma-separated scene.frame values")
+    parser.add_argument("--pictures", type=Path, help="folder for <frame>-<view>.png (captured | rendered, "
+                        "over their detail bands)")
     args = parser.parse_args(argv)
 
     def run() -> None:
-        print(f"{'frame':>5} {'view':<10} {'run':>6} {'+gain':>6} {'+blur':>6} {'+pose':>6}"
-              "   (dB; every column after 'run' uses the held-out image)", flush=True)
+        print(f"{'frame':>5} {'view':<10} {'run':>6} {'+gain':>6} {'+blur':>6} {'+pose':>6} {'detail':>7} "
+              f"{'+shift':>7} {'+pose':>7} {'band':>6}   (dB, then the detail correlation and the band "
+              "amplitude ratio; every column after 'run' and 'detail' uses the held-out image)", flush=True)
+        if args.pictures:
+            args.pictures.mkdir(parents=True, exist_ok=True)
         for frame in args.frames:
             cfg = compose_train([*args.overrides, f"scene.frame={frame}"])
             options = options_from_config(cfg)
@@ -88,9 +128,18 @@ def main(argv: list[str] | None = None) -> int:
                 gained = psnr(rendered * best_gain(rendered, captured), captured)
                 blurred = max(psnr(kornia.filters.gaussian_blur2d(rendered, (2 * math.ceil(3 * s) + 1,) * 2,
                                                                    (s, s)), captured) for s in BLURS)
-                posed = psnr(refit_pose(rec, v), captured)
+                posed_image = refit_pose(rec, v)
+                posed = psnr(posed_image, captured)
+                sigma = detail_sigma(scene)
+                details = (detail_correlation(rendered[0], captured[0], sigma),
+                           shifted_detail(rendered[0], captured[0], sigma),
+                           detail_correlation(posed_image[0], captured[0], sigma),
+                           band_ratio(rendered[0], captured[0], sigma))
                 print(f"{frame:5d} {name:<10} {psnr(rendered, captured):6.2f} {gained:6.2f} {blurred:6.2f} "
-                      f"{posed:6.2f}   (fitted to {train})", flush=True)
+                      f"{posed:6.2f} {details[0]:7.3f} {details[1]:7.3f} {details[2]:7.3f} {details[3]:6.3f}"
+                      f"   (fitted to {train})", flush=True)
+                if args.pictures:
+                    picture(args.pictures / f"{frame}-{name}.png", rendered[0], captured[0], sigma)
 
     return run_script(run, args.debug)
 

@@ -58,3 +58,14 @@ def test_the_figure_shows_the_capture_and_each_method_with_its_detail_band(tmp_p
     bands = [figure[2 * TITLE_PX + H:, k * W:(k + 1) * W].astype(float) for k in range(3)]
     spread = [float(np.abs(b - 127.5).mean()) for b in bands]
     assert spread[2] < spread[0]  # the heavily penalised render keeps less of the capture's detail
+
+
+def test_a_method_that_changes_the_scene_gets_its_own_scene(tmp_path):
+    """scene.* in one method's overrides loads that scene (it was the first method's scene for
+    all: scene.downscale=2 in a method compared the 1/4-resolution images)."""
+    out = tmp_path / "compare.json"
+    code = compare_methods.main(["scene=synthetic", *TINY, "solver.max_iters=5", "--frames", "0", "--out", str(out),
+                                 "--method", "plain=", "--method", "half=scene.downscale=2"])
+    assert code == 0
+    plain, half = json.loads(out.read_text())["rows"]
+    assert plain["black"] != pytest.approx(half["black"], abs=1e-6)  # other captured images

@@ -158,6 +158,9 @@ RULES: dict[str, Rule] = {
     "solver.relax": Rule(number(0, 2, lo_open=True, hi_open=True)),
     "solver.tv": Rule(number(0)),
     "solver.dual_step": Rule(number(0, lo_open=True), null=True),
+    "solver.reweight_rounds": Rule(integer(0)),
+    "solver.reweight_eps": Rule(number(0, lo_open=True)),
+    "solver.reweight": Rule(choice("tv", "l1", "both")),
     "solver.warm_iters": Rule(integer(0)),
     "solver.cg_iters": Rule(integer(1)),
     "solver.cg_tol": Rule(number(0, 1, lo_open=True, hi_open=True)),
@@ -310,6 +313,9 @@ NEEDS: dict[str, Need] = {
     "calibration.score_before": Need(bool, _refined, _REFINEMENT),
     "grid.level_iters": Need(lambda v: v is not None, lambda flat: bool(flat.get("grid.levels")),
                              "coarse levels (grid.levels, e.g. [16, 32])"),
+    **{f"solver.{key}": Need(_changed(default), lambda flat: (flat.get("solver.reweight_rounds") or 0) > 0,
+                             "reweighting rounds (solver.reweight_rounds >= 1)")
+       for key, default in {"reweight_eps": 0.1, "reweight": "tv"}.items()},
     **{f"temporal.{key}": Need(_changed(default), _frames, "frames solved jointly (scene.frames=[first,last])")
        for key, default in {"l2": 0.01, "tv": 0.0, "motion": "none", "max_shift": 3, "tol": 1.0e-5}.items()},
 }
