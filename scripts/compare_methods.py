@@ -26,9 +26,6 @@ import sys
 import time
 from pathlib import Path
 
-import torch
-from omegaconf import OmegaConf
-
 import flamerecon as fr
 from flamerecon.fit.reconstruct import mean_of
 from flamerecon.outputs.atomic import write_json_atomic
@@ -48,6 +45,9 @@ from flamerecon.outputs.names import file_stem
 from flamerecon.run.leave_one_out import leave_one_out
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
+
+import torch  # noqa: E402, I001  after flamerecon, which sets the threads first
+from omegaconf import OmegaConf  # noqa: E402
 
 
 def method(text: str) -> tuple[str, list[str]]:

@@ -186,6 +186,9 @@ RULES: dict[str, Rule] = {
     "scene.phantom_step": Rule(number(0.01)),
     "scene.noise": Rule(number(0)),
     "scene.peak": Rule(number(0, lo_open=True)),
+    "scene.field": Rule(choice("turbulent", "smooth")),
+    "scene.azimuths": Rule(list_of(number(), what="a list of camera azimuths in degrees"), null=True),
+    "scene.calibration_error": Rule(number(0)),
     # export/*.yaml
     "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "ply", "obj", "mesh", "all"),
                                    what="a list of vti, nrrd, raw, ply, obj, mesh, all")),
