@@ -26,6 +26,8 @@ from flamerecon.operators.projector import (
     integrate_dense,
     make_operator,
     march_box,
+    packed_samples,
+    ray_samples,
     render_image,
     support_box,
 )
@@ -271,3 +273,19 @@ def narrowed_case(grid: VoxelGrid, step: float):
 def test_support_box_narrowing_gives_the_same_integrals_as_the_full_march(box_grid):
     full, narrow = narrowed_case(box_grid, 0.5)
     assert (full - narrow).abs().max() <= 1e-5 * full.abs().max()
+
+
+def test_packed_samples_are_the_padded_march_without_its_padding_and_move_into_a_frame(box_grid):
+    """Packed samples hold the real samples of :func:`ray_samples` bit for bit; with a
+    ``frame`` their points are those points in the grid's voxel-index or grid_sample frame."""
+    rays = random_rays(box_grid, 50, seed=3)
+    points, length = ray_samples(rays, box_grid, 0.5)
+    keep = length > 0
+    blocks = list(packed_samples(rays, box_grid, 0.5, chunk=300))
+    assert len(blocks) > 1  # the chunk splits the rays
+    packed = torch.cat([b.points for _, b in blocks])
+    assert torch.equal(packed, points[keep]) and torch.equal(torch.cat([b.length for _, b in blocks]), length[keep])
+    for frame, to_frame in ((box_grid.index_frame(), box_grid.world_to_index),
+                            (box_grid.normalized_frame(), box_grid.world_to_normalized)):
+        moved = torch.cat([b.points for _, b in packed_samples(rays, box_grid, 0.5, chunk=300, frame=frame)])
+        torch.testing.assert_close(moved, to_frame(points[keep]), atol=1e-5, rtol=1e-5)

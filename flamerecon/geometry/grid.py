@@ -84,9 +84,20 @@ class VoxelGrid:
         z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
         return torch.stack([x, y, z], dim=-1)
 
+    def index_frame(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(scale (3,), offset (3,)) of :meth:`world_to_index`: ``xyz * scale + offset``."""
+        size = self.voxel_size(device)
+        return 1.0 / size, -self.lo(device) / size - 0.5
+
+    def normalized_frame(self, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(scale (3,), offset (3,)) of :meth:`world_to_normalized`: ``xyz * scale + offset``."""
+        extent = self.hi(device) - self.lo(device)
+        return 2.0 / extent, -2.0 * self.lo(device) / extent - 1.0
+
     def world_to_index(self, xyz: torch.Tensor) -> torch.Tensor:
         """Continuous voxel coordinates (…, 3) as (i, j, k): cell centre ``i`` sits at ``i``."""
-        return (xyz - self.lo(xyz.device)) / self.voxel_size(xyz.device) - 0.5
+        scale, offset = self.index_frame(xyz.device)
+        return torch.addcmul(offset.to(xyz.dtype), xyz, scale.to(xyz.dtype))
 
     def index_to_world(self, ijk: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`world_to_index`."""
@@ -94,8 +105,8 @@ class VoxelGrid:
 
     def world_to_normalized(self, xyz: torch.Tensor) -> torch.Tensor:
         """World xyz (…, 3) to grid_sample's [-1, 1] coordinates (align_corners=False)."""
-        lo, hi = self.lo(xyz.device), self.hi(xyz.device)
-        return 2.0 * (xyz - lo) / (hi - lo) - 1.0
+        scale, offset = self.normalized_frame(xyz.device)
+        return torch.addcmul(offset.to(xyz.dtype), xyz, scale.to(xyz.dtype))
 
     def corners(self) -> torch.Tensor:
         """The 8 corners of the box (8, 3)."""

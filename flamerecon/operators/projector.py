@@ -148,14 +148,20 @@ class Samples:
 
 def packed_samples(
     rays: Rays, grid: VoxelGrid, step: float, box: tuple[torch.Tensor, torch.Tensor] | None = None,
-    chunk: int | None = None,
+    chunk: int | None = None, frame: tuple[torch.Tensor, torch.Tensor] | None = None,
 ):
     """Yield (slice of rays, :class:`Samples`) blocks of about ``chunk`` samples (default
     :data:`CHUNK_SAMPLES`; a longer ray is a block alone); ``Samples.ray`` counts from the
     block's first ray. The same points and lengths as :func:`ray_samples`, bit for bit, without
-    its padding of short rays (and of rays that miss) up to the longest ray of the chunk."""
+    its padding of short rays (and of rays that miss) up to the longest ray of the chunk.
+    ``frame`` (scale (3,), offset (3,)), e.g. :meth:`VoxelGrid.normalized_frame`, gives the
+    points as ``xyz * scale + offset`` (the rays are moved into that frame once, not each sample)."""
     chunk = CHUNK_SAMPLES if chunk is None else int(chunk)
     t_near, t_far, first, end, ds = _segments(rays, grid, step, box)
+    origins, directions = rays.origins, rays.directions
+    if frame is not None:
+        scale, offset = (t.to(origins) for t in frame)
+        origins, directions = torch.addcmul(offset, origins, scale), directions * scale
     count = (end - first).clamp_min(0.0).long()
     total = torch.cumsum(count, 0)
     R, s = len(rays), 0
@@ -166,7 +172,7 @@ def packed_samples(
         n = count[s:e]
         ray = torch.repeat_interleave(torch.arange(e - s, device=n.device), n)
         near, far, first_k, origin, direction = (
-            t[s:e].index_select(0, ray) for t in (t_near, t_far, first, rays.origins, rays.directions)
+            t[s:e].index_select(0, ray) for t in (t_near, t_far, first, origins, directions)
         )
         offset = torch.cumsum(n, 0) - n  # each ray's first sample in the block
         k = first_k.add_(torch.arange(ray.numel(), device=n.device) - offset.index_select(0, ray))
@@ -196,9 +202,9 @@ def integrate_dense(
     ``box`` may narrow the march to where the volume can be nonzero (see :func:`support_box`)."""
     C = volume.shape[0]
     out = []
-    for sl, smp in packed_samples(rays, grid, step, box):
-        coords = grid.world_to_normalized(smp.points)  # (P, 3) as x, y, z
-        weighted = _sample(volume, coords) * smp.length  # (C, P)
+    frame = grid.normalized_frame(rays.origins.device)
+    for sl, smp in packed_samples(rays, grid, step, box, frame=frame):
+        weighted = _sample(volume, smp.points) * smp.length  # (C, P); points as x, y, z in [-1, 1]
         sums = weighted.new_zeros(C, sl.stop - sl.start).index_add_(1, smp.ray, weighted)
         out.append(sums.T)
     if not out:
@@ -338,8 +344,9 @@ def assemble(
     top = torch.tensor(live.shape[::-1], device=device) - 1  # (nx, ny, nz)
     rows_all, cols_all, vals_all = [], [], []
     shape = torch.tensor(live.shape, device=device)
-    for sl, smp in packed_samples(rays, grid, step, box, ASSEMBLY_CHUNK_SAMPLES):
-        u = grid.world_to_index(smp.points).T.contiguous()  # (3, P)
+    frame = grid.index_frame(device)
+    for sl, smp in packed_samples(rays, grid, step, box, ASSEMBLY_CHUNK_SAMPLES, frame):
+        u = smp.points.T.contiguous()  # (3, P) continuous voxel coordinates
         i0f = torch.floor(u)
         i0 = i0f.to(torch.int32 if grid.num_voxels < 2**31 else torch.long)
         # keep only samples whose trilinear cell touches the hull (most of the support box
