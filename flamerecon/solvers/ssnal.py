@@ -84,8 +84,11 @@ class Ssnal(Solver):
             grad = y + b - Axt
             gg = (grad.double() ** 2).sum(0)
             enough = max(delta**2 / sigma * float(((xt - x).double() ** 2).sum()), self.floor)
-            if k == self.newton_iters or float(gg.sum()) <= enough or self.out_of_time():
+            if k == self.newton_iters or float(gg.sum()) <= enough:
                 break
+            if self.out_of_time():  # the subproblem unsolved: x (and its gap) stay as they were
+                self.y = y
+                return
             active = v > 0
             d = self._newton_direction(grad, active, sigma)
             ATd = A.adjoint(d)
