@@ -43,10 +43,11 @@ class Ssnal(Solver):
                  sigma_max: float = 1e4, newton_iters: int = 20, cg_iters: int = 200,
                  cg_tol: float = 1e-2) -> None:
         super().__init__(max_iters, tol, check_every, max_seconds)
-        for key, v, low in (("sigma", sigma, 0.0), ("sigma_max", sigma_max, 0.0),
-                            ("cg_tol", cg_tol, 0.0)):
-            if not float(v) > low:
-                raise ValueError(f"solver.{key} must be > {low:g}, got {v}")
+        for key, v in (("sigma", sigma), ("sigma_max", sigma_max)):
+            if not float(v) > 0:
+                raise ValueError(f"solver.{key} must be > 0, got {v}")
+        if not 0 < float(cg_tol) < 1:
+            raise ValueError(f"solver.cg_tol must be in (0, 1), got {cg_tol}")
         if not float(sigma_growth) >= 1:
             raise ValueError(f"solver.sigma_growth must be >= 1, got {sigma_growth}")
         for key, v in (("newton_iters", newton_iters), ("cg_iters", cg_iters)):
