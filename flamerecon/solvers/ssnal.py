@@ -41,7 +41,7 @@ class Ssnal(Solver):
     def __init__(self, max_iters: int = 100, tol: float = 1e-4, check_every: int = 1,
                  max_seconds: float | None = None, sigma: float = 1.0, sigma_growth: float = 5.0,
                  sigma_max: float = 1e4, newton_iters: int = 20, cg_iters: int = 200,
-                 cg_tol: float = 1e-2) -> None:
+                 cg_tol: float = 0.1) -> None:
         super().__init__(max_iters, tol, check_every, max_seconds)
         for key, v in (("sigma", sigma), ("sigma_max", sigma_max)):
             if not float(v) > 0:
