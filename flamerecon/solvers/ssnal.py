@@ -13,7 +13,8 @@ strongly convex with gradient y + b - A x~(y), x~(y) = max(x - sigma (A^T y + l1
 prox of sigma (l1 sum + the indicator of x >= 0)), by semismooth Newton: the system
 (I + sigma A_J A_J^T) d = -grad on the voxels J where x~ > 0 is solved by conjugate gradients
 in the ray space (Jacobi-preconditioned), the step found by Armijo backtracking on psi (free:
-A^T d is computed once); then x <- x~(y) and sigma grows. The C colour columns are solved
+A^T d is computed once), until the paper's criterion (B) holds; then x <- x~(y) and sigma
+grows. The duality gap is that of x with its residual (base.duality_gap), as for every solver. The C colour columns are solved
 together (one product with C columns costs about one with one on the CPU): each has its own
 J, CG coefficients and step.
 """
@@ -31,7 +32,8 @@ class Ssnal(Solver):
     """Augmented Lagrangian on the dual, its subproblems by semismooth Newton-CG.
 
     One outer iteration costs, per Newton step, one A x, one A^T y and up to ``cg_iters``
-    A x + A^T y pairs, plus one A^T y for the duality gap. Stops when the relative duality gap
+    A x + A^T y pairs, plus one A x and two A^T y (the slack A^T y + l1 afresh, the duality
+    gap). Stops when the relative duality gap
     (checked every ``check_every`` outer iterations) is below ``tol``, after ``max_iters``
     outer iterations, or at the first check past ``max_seconds`` (a Newton loop also ends
     there). ``sigma`` is the first penalty in units of 1/||A||^2, multiplied by
@@ -77,7 +79,7 @@ class Ssnal(Solver):
         w = A.adjoint(y) + self.problem.l1  # afresh: increments t A^T d accumulate rounding
         # the subproblem's accuracy: criterion (B) of the paper, ||grad||^2 <= delta^2 / sigma
         # ||x~ - x||^2 with a summable delta, above the rounding floor of y + b - A x~
-        delta = 0.5 / it
+        delta = 0.5 / it**1.1
         for k in range(self.newton_iters + 1):
             v = x - sigma * w
             xt = v.clamp_min(0)
