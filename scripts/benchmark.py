@@ -54,7 +54,7 @@ from flamerecon.scenes import load_scene
 from flamerecon.solvers import SOLVERS, Problem, lambda_max, make_solver
 
 TARGETS = (1e-4, 1e-6)
-OURS = ("fista", "newton_cg", "pqn")
+OURS = ("fista", "newton_cg", "pqn", "ssnal")
 ONE = " (1 thread)"  # suffix of ours on one thread, the cores the peers run on
 PEERS = ("sklearn_lasso", "skglm_lasso", "celer_lasso", "sklearn_lassolars")
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "flamerecon" / "benchmark"

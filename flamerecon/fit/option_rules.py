@@ -164,6 +164,10 @@ RULES: dict[str, Rule] = {
     "solver.warm_iters": Rule(integer(0)),
     "solver.cg_iters": Rule(integer(1)),
     "solver.cg_tol": Rule(number(0, 1, lo_open=True, hi_open=True)),
+    "solver.sigma": Rule(number(0, lo_open=True)),
+    "solver.sigma_growth": Rule(number(1)),
+    "solver.sigma_max": Rule(number(0, lo_open=True)),
+    "solver.newton_iters": Rule(integer(1)),
     # scene/*.yaml
     "scene.name": Rule(text),
     "scene.root": Rule(text),

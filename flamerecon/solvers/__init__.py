@@ -11,6 +11,7 @@ from flamerecon.solvers import (  # noqa: F401  (registers)
     pqn,
     primal_dual_tv,
     sart,
+    ssnal,
 )
 from flamerecon.solvers.base import (
     SOLVERS,
