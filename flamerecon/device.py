@@ -5,6 +5,8 @@ from __future__ import annotations
 import functools
 import math
 import os
+import statistics
+import time
 
 import torch
 
@@ -29,17 +31,43 @@ def resolve_device(name: str | torch.device, field: str = "device") -> torch.dev
 
 
 def free_cores(cores: int, load: float) -> int:
-    """Threads for ``cores`` usable cores when other processes keep ``load`` of them busy (the
-    1-minute load average, rounded): the rest, at least 1."""
+    """Threads for ``cores`` usable cores when other processes keep ``load`` of them busy
+    (rounded): the rest, at least 1."""
     return max(1, cores - math.floor(load + 0.5))
+
+
+def runnable_threads() -> int | None:
+    """Threads of the whole machine runnable at this instant, this one included (the 4th field
+    of /proc/loadavg); None where the file is missing (not Linux)."""
+    try:
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].split("/")[0])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def busy_cores(reads: int = 5, pause: float = 0.01) -> float:
+    """Cores other processes keep busy now: the runnable threads less this one, the median of
+    ``reads`` reads ``pause`` seconds apart; without /proc/loadavg the 1-minute load average.
+    The load average lags: a run started right after another (a user's previous run, ended
+    seconds ago) read about 1 on an idle 2-core machine and took one thread of two."""
+    counts = []
+    for k in range(reads):
+        n = runnable_threads()
+        if n is None:
+            return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+        counts.append(max(0, n - 1))
+        if k < reads - 1:
+            time.sleep(pause)
+    return float(statistics.median(counts))
 
 
 @functools.cache
 def default_threads() -> int:
-    """:func:`free_cores` of this process's CPU affinity and the load average, read once per
+    """:func:`free_cores` of this process's CPU affinity and :func:`busy_cores`, read once per
     process (before its own solves add to the load)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return free_cores(cores, os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0)
+    return free_cores(cores, busy_cores())
 
 
 def set_threads(threads: int | None) -> int:

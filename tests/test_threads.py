@@ -1,5 +1,5 @@
 """Torch's CPU threads: ``threads`` as given, or null matched to the free cores (usable cores
-less the load average, at least 1), set at every reconstruction's start, so it holds however
+less the threads other processes are running now, at least 1), set at every reconstruction's start, so it holds however
 the program imported torch; the scripts import flamerecon before torch, so its OpenMP setting
 is read."""
 
@@ -25,9 +25,11 @@ def test_the_default_is_the_cores_others_leave_free_at_least_one(cores, load, th
 
 @pytest.fixture
 def machine(monkeypatch):
-    """A machine of 4 usable cores with a 1-minute load of 1.3 (the default read afresh)."""
+    """A machine of 4 usable cores where other processes run 1 thread now (this one's read
+    makes 2 runnable); the default read afresh."""
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
-    monkeypatch.setattr(os, "getloadavg", lambda: (1.3, 0.5, 0.2))
+    monkeypatch.setattr(device, "runnable_threads", lambda: 2)
+    monkeypatch.setattr(device.time, "sleep", lambda s: None)
     device.default_threads.cache_clear()
     before = torch.get_num_threads()
     yield
@@ -42,8 +44,37 @@ def test_null_threads_take_the_free_cores_and_a_number_is_kept(machine):
 
 def test_the_default_is_read_once_per_process(machine, monkeypatch):
     assert device.default_threads() == 3
-    monkeypatch.setattr(os, "getloadavg", lambda: (3.9, 3.0, 2.0))  # this process's own solves
+    monkeypatch.setattr(device, "runnable_threads", lambda: 5)  # this process's own solves
     assert device.default_threads() == 3
+
+
+def test_busy_cores_is_the_median_of_its_reads_less_this_thread_and_ignores_the_load_average(monkeypatch):
+    reads = iter([1, 3, 2, 9, 2])  # a short-lived process (9) does not count
+    monkeypatch.setattr(device, "runnable_threads", lambda: next(reads))
+    monkeypatch.setattr(device.time, "sleep", lambda s: None)
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.3, 0.5, 0.2))  # a run that ended seconds ago
+    assert device.busy_cores() == 1.0
+
+
+def test_without_proc_loadavg_the_load_average_is_the_busy_cores(monkeypatch):
+    monkeypatch.setattr(device, "runnable_threads", lambda: None)
+    monkeypatch.setattr(os, "getloadavg", lambda: (2.6, 0.5, 0.2))
+    assert device.busy_cores() == 2.6
+
+
+@pytest.mark.skipif(device.runnable_threads() is None, reason="no /proc/loadavg (not Linux)")
+def test_a_spinning_process_is_counted_busy():
+    import subprocess
+    import sys
+    import time
+
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.3)
+        assert device.busy_cores() >= 1
+    finally:
+        spin.kill()
+        spin.wait()
 
 
 def test_the_thread_count_holds_when_torch_was_imported_first():
