@@ -23,6 +23,7 @@ from flamerecon.operators.projector import (
     assemble,
     camera_rays,
     cells_touching,
+    footprint,
     integrate_dense,
     make_operator,
     march_box,
@@ -289,3 +290,43 @@ def test_packed_samples_are_the_padded_march_without_its_padding_and_move_into_a
                             (box_grid.normalized_frame(), box_grid.world_to_normalized)):
         moved = torch.cat([b.points for _, b in packed_samples(rays, box_grid, 0.5, chunk=300, frame=frame)])
         torch.testing.assert_close(moved, to_frame(points[keep]), atol=1e-5, rtol=1e-5)
+
+
+def full_march(volume: torch.Tensor, grid: VoxelGrid, cams) -> torch.Tensor:
+    """Every pixel of every camera marched through the whole box: (B, C, H, W)."""
+    B, H, W = cams.batch_size, int(cams.height[0]), int(cams.width[0])
+    rays, _ = camera_rays(cams)
+    pix = integrate_dense(volume, grid, rays)
+    return pix.T.reshape(volume.shape[0], B, H, W).transpose(0, 1)
+
+
+@pytest.mark.parametrize("where", ["random", "edge", "block boundary"])
+def test_a_render_marches_only_its_footprint_and_equals_the_full_march(box_grid, where):
+    """Pixels outside the footprint of the density's nonzeros render exactly 0, so the render
+    that skips them is the full march, bit for bit; the footprint is much smaller than the image."""
+    cams = ring_of_cameras(4, 64, 48, target=[0.2, 0.95, 1.375], focal=40.0)
+    volume = torch.zeros(2, *box_grid.shape)
+    if where == "random":
+        g = torch.Generator().manual_seed(5)
+        volume[:, 1:4, 2:6, 1:5] = torch.rand(2, 3, 4, 4, generator=g)
+    elif where == "edge":
+        volume[:, 0, 11, 7] = 1.0  # a corner voxel: the interpolant reaches half a voxel outside the box
+    else:
+        volume[:, 2, 5, 3] = 1.0  # the last voxel of a 2-voxel block, next to the following block
+    full = full_march(volume, box_grid, cams)
+    assert torch.equal(render_image(volume, box_grid, cams), full)
+    seen = footprint(volume.abs().sum(0) > 0, box_grid, cams)
+    lit = full.abs().sum(1) > 0
+    assert lit.any() and bool(seen[lit].all()) and float(seen.float().mean()) < 0.5
+
+
+def test_a_camera_with_the_density_behind_its_centre_plane_keeps_every_pixel(box_grid):
+    from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
+
+    inside = torch.tensor([0.2, 0.95, 1.375])  # the box centre: half the density is behind the camera
+    cams = make_cameras(intrinsics_matrix(20.0, 20.0, 12.0, 10.0)[None],
+                        look_at(inside[None], torch.tensor([[0.2, 0.95, 3.0]])), 20, 24)
+    volume = torch.ones(1, *box_grid.shape)
+    assert bool(footprint(volume[0] > 0, box_grid, cams).all())
+    assert torch.equal(render_image(volume, box_grid, cams), full_march(volume, box_grid, cams))
+    assert not footprint(torch.zeros(box_grid.shape, dtype=torch.bool), box_grid, cams).any()

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
 
-from flamerecon.geometry.cameras import pixel_centers, pixel_rays
+from flamerecon.geometry.cameras import cameras_to, pixel_centers, pixel_rays, project_points
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.sparse import CsrOperator, stable_argsort
 
@@ -453,18 +453,69 @@ class MatrixFreeOperator:
         return grad
 
 
+#: voxels per side of the blocks whose projections bound where a render can be nonzero
+FOOTPRINT_BLOCK = 2
+
+
+def footprint(nonzero: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, block: int = FOOTPRINT_BLOCK
+              ) -> torch.Tensor:
+    """(B, H, W) bool: the pixels whose rays can meet a nonzero of the trilinear interpolant of
+    a volume whose nonzero voxels are ``nonzero`` (nz, ny, nx) bool; every other pixel renders
+    exactly 0. The nonzeros are grown by a voxel (the interpolant's reach), grouped in blocks of
+    ``block`` voxels, and each occupied block's cells (grown by half a voxel) are bounded in every
+    image by the rectangle of its 8 projected corners, widened by a pixel. A camera with a corner
+    of an occupied block at or behind its centre plane keeps every pixel."""
+    B, H, W = cams.batch_size, int(cams.height[0]), int(cams.width[0])
+    device = nonzero.device
+    grown = F.max_pool3d(nonzero[None, None].float(), 3, stride=1, padding=1)[0, 0]
+    pad = [(-n) % block for n in grown.shape]  # (nz, ny, nx) up to whole blocks
+    grown = F.pad(grown, (0, pad[2], 0, pad[1], 0, pad[0]))
+    occupied = F.max_pool3d(grown[None, None], block, stride=block)[0, 0].nonzero()  # (K, 3) as k, j, i
+    mask = torch.zeros(B, H + 1, W + 1, dtype=torch.int32, device=device)
+    if occupied.numel() == 0:
+        return mask[:, :H, :W] > 0
+    size = grid.voxel_size(device)
+    ijk = occupied.flip(1).to(size.dtype)  # (K, 3) as i, j, k
+    lo = grid.lo(device) + (ijk * block - 0.5) * size
+    hi = grid.lo(device) + ((ijk + 1) * block + 0.5) * size
+    offsets = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=size.dtype, device=device)
+    corners = (lo[:, None] + offsets * (hi - lo)[:, None]).reshape(-1, 3)  # (K * 8, 3)
+    uv, depth = project_points(cams, corners)
+    uv, depth = uv.reshape(B, -1, 8, 2), depth.reshape(B, -1, 8)
+    # pixel centres are at (j + 0.5, i + 0.5): the columns j with j + 0.5 in [u_min, u_max], +- 1
+    first = (uv.amin(2) - 0.5).floor().long() - 1  # (B, K, 2) as (u, v)
+    last = (uv.amax(2) - 0.5).ceil().long() + 1
+    limit = torch.tensor([W - 1, H - 1], device=device)
+    first, last = first.clamp(min=0), torch.minimum(last, limit)
+    inside = (first <= last).all(-1)  # (B, K): the rectangle meets the image
+    for b in range(B):
+        if bool((depth[b] <= 1e-6).any()):
+            mask[b] = 1
+            continue
+        f, e = first[b][inside[b]], last[b][inside[b]] + 1
+        # the union of rectangles by a 2-D difference array and its cumulative sums
+        for (u, v), sign in (((f[:, 0], f[:, 1]), 1), ((e[:, 0], f[:, 1]), -1), ((f[:, 0], e[:, 1]), -1),
+                             ((e[:, 0], e[:, 1]), 1)):
+            mask[b].index_put_((v, u), torch.full_like(u, sign, dtype=torch.int32), accumulate=True)
+    return mask.cumsum(1).cumsum(2)[:, :H, :W] > 0
+
+
 def render_image(
     volume: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, step: float = 0.5
 ) -> torch.Tensor:
     """Render every pixel of every camera: volume (C, nz, ny, nx) -> images (B, C, H, W).
-    Only the segments inside the box of the volume's nonzeros are marched (the others add 0)."""
-    B = cams.batch_size
+    Only the pixels of the :func:`footprint` of the volume's nonzeros are marched, and only in
+    the box of those nonzeros (everything else adds exactly 0)."""
+    B, C = cams.batch_size, volume.shape[0]
     H, W = int(cams.height[0]), int(cams.width[0])
-    rays, _ = camera_rays(cams)
     with torch.no_grad():
-        box = support_box(grid, volume.abs().sum(0).reshape(-1).nonzero().squeeze(1))
-        pix = integrate_dense(volume, grid, rays.to(volume.device), step, box)
-    return pix.T.reshape(volume.shape[0], B, H, W).transpose(0, 1).contiguous()
+        nonzero = volume.abs().sum(0) > 0
+        box = support_box(grid, nonzero.reshape(-1).nonzero().squeeze(1))
+        seen = footprint(nonzero, grid, cameras_to(cams, volume.device)).reshape(-1)
+        rays, _ = camera_rays(cams, seen.reshape(B, H, W).to(cams.intrinsics.device))
+        pix = volume.new_zeros(B * H * W, C)
+        pix[seen] = integrate_dense(volume, grid, rays.to(volume.device), step, box)
+    return pix.T.reshape(C, B, H, W).transpose(0, 1).contiguous()
 
 
 def make_operator(
