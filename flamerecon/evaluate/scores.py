@@ -29,13 +29,7 @@ from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import apply_gain_offset
 from flamerecon.geometry.silhouettes import silhouettes
-from flamerecon.operators.projector import (
-    camera_rays,
-    integrate_dense,
-    ray_box,
-    render_image,
-    support_box,
-)
+from flamerecon.operators.projector import render_image
 from flamerecon.outputs.atomic import atomic_write_bytes, make_folder
 from flamerecon.outputs.figures import heldout_figure
 from flamerecon.outputs.names import file_stems
@@ -73,22 +67,11 @@ def masked_scores(rendered: torch.Tensor, captured: torch.Tensor, mask: torch.Te
 
 
 def render_support(volume: torch.Tensor, grid: VoxelGrid, cams, step: float) -> torch.Tensor:
-    """Render every pixel of every camera like :func:`~flamerecon.operators.projector.render_image`, one
-    camera at a time and marching only rays that cross the box of the nonzero density, so
-    that full-resolution frames fit in memory: volume (C, nz, ny, nx) -> (B, C, H, W) on CPU."""
-    C = volume.shape[0]
-    support = volume.detach().abs().sum(0).reshape(-1).nonzero().squeeze(1)
-    box = support_box(grid, support)
-    H, W = int(cams.height[0]), int(cams.width[0])
-    out = torch.zeros(cams.batch_size, C, H * W)
-    for b in range(cams.batch_size):
-        rays, _ = camera_rays(camera_subset(cams, [b]))
-        near, far = ray_box(rays, *box)
-        hit = (far > near).nonzero().squeeze(1)
-        if hit.numel():
-            with torch.no_grad():
-                out[b][:, hit.cpu()] = integrate_dense(volume, grid, rays[hit], step, box).T.cpu()
-    return out.reshape(cams.batch_size, C, H, W)
+    """:func:`~flamerecon.operators.projector.render_image` one camera at a time (each marching
+    only the footprint of the nonzero density), so that full-resolution frames fit in memory:
+    volume (C, nz, ny, nx) -> (B, C, H, W) on CPU."""
+    return torch.cat([render_image(volume, grid, camera_subset(cams, [b]), step).cpu()
+                      for b in range(cams.batch_size)])
 
 
 def native_scene(scene_cfg: Mapping) -> Scene | None:
