@@ -8,7 +8,7 @@ import math
 
 import torch
 
-from flamerecon.solvers.base import Problem, Solver, density_scale, duality_gap, register
+from flamerecon.solvers.base import Problem, Solver, density_scale, gap_report, register
 
 
 @register("adam")
@@ -74,15 +74,7 @@ class Adam(Solver):
         """The gap belongs to this x, before its step."""
         problem, xd, lam = self.problem, self.param.detach(), self.problem.l1
         r = self.r.detach()
-        primal, gap = duality_gap(problem, xd, r, self.param.grad - lam)
-        return {
-            "objective": primal,
-            "data": 0.5 * float((r.double() ** 2).sum()),
-            "l1": lam * float(xd.double().sum()),
-            "gap": gap,
-            "rel_gap": gap / max(primal, 1e-30),
-            "lr": self.opt.param_groups[0]["lr"],
-        }
+        return {**gap_report(problem, xd, r, self.param.grad - lam), "lr": self.opt.param_groups[0]["lr"]}
 
     def after_check(self, info: dict) -> None:
         if info["objective"] < self.best:

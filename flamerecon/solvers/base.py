@@ -89,6 +89,20 @@ def duality_gap(
     return float(primal.sum()), float((primal - dual).clamp_min(0).sum())
 
 
+def gap_report(problem: Problem, x: torch.Tensor, residual: torch.Tensor, grad: torch.Tensor) -> dict[str, float]:
+    """A solver's report at a feasible ``x``: objective, its data and L1 terms, the duality gap
+    and the gap relative to the objective (:func:`duality_gap`; ``residual`` = A x - b (N, C),
+    ``grad`` = A^T residual (M, C))."""
+    primal, gap = duality_gap(problem, x, residual, grad)
+    return {
+        "objective": primal,
+        "data": 0.5 * float((residual.double() ** 2).sum()),
+        "l1": problem.l1 * float(x.double().sum()),
+        "gap": gap,
+        "rel_gap": gap / max(primal, 1e-30),
+    }
+
+
 @dataclass
 class SolveResult:
     """What a solve returns: densities (M, C) and how it got there."""

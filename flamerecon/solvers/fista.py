@@ -10,7 +10,7 @@ from flamerecon.solvers.base import (
     Problem,
     Solver,
     SolveResult,
-    duality_gap,
+    gap_report,
     power_norm_sq,
     register,
 )
@@ -72,16 +72,9 @@ class Fista(Solver):
 
     def report(self, it: int) -> dict[str, float]:
         problem, x = self.problem, self.x
-        A, b, lam = problem.A, problem.b, problem.l1
+        A, b = problem.A, problem.b
         r = A.forward(x) - b
-        primal, gap = duality_gap(problem, x, r, A.adjoint(r))
-        return {
-            "objective": primal,
-            "data": 0.5 * float((r.double() ** 2).sum()),
-            "l1": lam * float(x.double().sum()),
-            "gap": gap,
-            "rel_gap": gap / max(primal, 1e-30),
-        }
+        return gap_report(problem, x, r, A.adjoint(r))
 
     def snapshot(self, it: int) -> dict:
         return {"iteration": it, "x": self.x, "y": self.y, "t": float(self.t), "L": self.L,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from flamerecon.solvers.base import Callback, Problem, Solver, SolveResult, duality_gap, register
+from flamerecon.solvers.base import Callback, Problem, Solver, SolveResult, gap_report, register
 
 
 class _Stop(Exception):
@@ -61,10 +61,7 @@ class Lbfgsb(Solver):
             else:
                 r = A.forward(xt) - b
                 g = A.adjoint(r)
-            primal, gap = duality_gap(problem, xt, r, g)
-            info = {"objective": primal, "data": 0.5 * float((r.double() ** 2).sum()),
-                    "l1": lam * float(xt.double().sum()), "gap": gap,
-                    "rel_gap": gap / max(primal, 1e-30)}
+            info = gap_report(problem, xt, r, g)
             self.x = xt
             if self._checked(it, info, callback):
                 state["converged"] = True

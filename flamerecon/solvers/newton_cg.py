@@ -16,7 +16,7 @@ from flamerecon.solvers.base import (
     Problem,
     Solver,
     SolveResult,
-    duality_gap,
+    gap_report,
     power_norm_sq,
     register,
 )
@@ -73,11 +73,7 @@ class NewtonCG(Solver):
             x, r, f, t = self._line_search(A, b, lam, x, r, f, g, d, L)
             ATr = A.adjoint(r)
             if it % self.check_every == 0 or it == self.max_iters:
-                primal, gap = duality_gap(problem, x, r, ATr)
-                info = {"objective": primal, "data": 0.5 * float((r.double() ** 2).sum()),
-                        "l1": lam * float(x.double().sum()), "gap": gap,
-                        "rel_gap": gap / max(primal, 1e-30),
-                        "free_fraction": float(free.double().mean()), "step": t}
+                info = {**gap_report(problem, x, r, ATr), "free_fraction": float(free.double().mean()), "step": t}
                 history.append({"iteration": it, **info})
                 if callback is not None:
                     callback(it, x, info)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from flamerecon.solvers.base import Problem, Solver, duality_gap, register
+from flamerecon.solvers.base import Problem, Solver, gap_report, register
 
 
 @register("pqn")
@@ -105,15 +105,7 @@ class ProjectedQuasiNewton(Solver):
         return x_new, r_new, True
 
     def report(self, it: int) -> dict[str, float]:
-        problem, x, r = self.problem, self.x, self.r
-        primal, gap = duality_gap(problem, x, r, self.g - problem.l1)
-        return {
-            "objective": primal,
-            "data": 0.5 * float((r.double() ** 2).sum()),
-            "l1": problem.l1 * float(x.double().sum()),
-            "gap": gap,
-            "rel_gap": gap / max(primal, 1e-30),
-        }
+        return gap_report(self.problem, self.x, self.r, self.g - self.problem.l1)
 
     def result(self, problem: Problem) -> tuple[torch.Tensor, float]:
         """x and the objective of the problem iterated on (stacked too), from its residual."""

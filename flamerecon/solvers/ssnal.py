@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 
 from flamerecon.operators.sparse import CsrOperator, csr_matmul
-from flamerecon.solvers.base import Problem, Solver, duality_gap, power_norm_sq, register
+from flamerecon.solvers.base import Problem, Solver, gap_report, power_norm_sq, register
 
 
 @register("ssnal")
@@ -156,15 +156,7 @@ class Ssnal(Solver):
         return torch.where(done, t, 0.0).to(y.dtype)
 
     def _measures(self) -> dict[str, float]:
-        problem, x, r = self.problem, self.x, self.r
-        primal, gap = duality_gap(problem, x, r, self.ATr)
-        return {
-            "objective": primal,
-            "data": 0.5 * float((r.double() ** 2).sum()),
-            "l1": problem.l1 * float(x.double().sum()),
-            "gap": gap,
-            "rel_gap": gap / max(primal, 1e-30),
-        }
+        return gap_report(self.problem, self.x, self.r, self.ATr)
 
     def report(self, it: int) -> dict[str, float]:
         return {**self.info, "sigma": self.sigma, "newton_steps": self.newton_steps,
