@@ -4,13 +4,14 @@ hull, rays and the operator restricted to them — and the solver that fits it."
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from flamerecon.arguments import fields, instance, tensor, value, wrong_value
+from flamerecon.arguments import fields, instance, tensor, value, wrong_type, wrong_value
 from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.evaluate.metrics import resample_to
@@ -150,6 +151,17 @@ def check_inputs(where: str, scene: Scene, options: ReconstructionOptions | None
              null=True)
     if options is not None:
         options.check()
+
+
+def check_frame_inputs(where: str, scenes, options: ReconstructionOptions | None, device, what: str) -> None:
+    """Refuse ``scenes`` that are not a non-empty list of Scenes (``what``: which frames, for
+    the message), then each frame, ``options`` and ``device`` as :func:`check_inputs`."""
+    if isinstance(scenes, Scene) or not isinstance(scenes, Sequence):
+        raise wrong_type(f"{where}.scenes", scenes, f"a list of Scenes, {what}")
+    if len(scenes) < 1:
+        raise wrong_value(f"{where}.scenes", scenes, "a list of at least one Scene")
+    for i, scene in enumerate(scenes):
+        check_inputs(f"{where}.scenes[{i}]", scene, options, device)
 
 
 def fit_pixels(which: str, grid: VoxelGrid, cams, hull: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:

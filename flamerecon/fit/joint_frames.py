@@ -23,10 +23,10 @@ from itertools import pairwise
 import numpy as np
 import torch
 
-from flamerecon.arguments import fields, instance, wrong_type, wrong_value
+from flamerecon.arguments import fields, instance
 from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError
-from flamerecon.fit.build import Setup, build, check_inputs, make_problem
+from flamerecon.fit.build import Setup, build, check_frame_inputs, make_problem
 from flamerecon.fit.debias import debias
 from flamerecon.fit.option_rules import check_section
 from flamerecon.fit.options import ReconstructionOptions
@@ -188,12 +188,7 @@ def reconstruct_frames(scenes: Sequence[Scene], options: ReconstructionOptions |
     prepared as :func:`~flamerecon.fit.reconstruct.reconstruct` would, solved together with the
     temporal coupling of ``joint`` through ``hook.joint`` (default: solve only), each frame then
     debiased. Sets torch's seed and thread count as the options say."""
-    if isinstance(scenes, Scene) or not isinstance(scenes, Sequence):
-        raise wrong_type("reconstruct_frames.scenes", scenes, "a list of Scenes, the frames in order")
-    if len(scenes) < 1:
-        raise wrong_value("reconstruct_frames.scenes", scenes, "a list of at least one Scene")
-    for i, scene in enumerate(scenes):
-        check_inputs(f"reconstruct_frames.scenes[{i}]", scene, options, device)
+    check_frame_inputs("reconstruct_frames", scenes, options, device, "the frames in order")
     instance("reconstruct_frames.joint", joint, JointFramesOptions, null=True)
     instance("reconstruct_frames.hook", hook, SolveHook, null=True)
     options = (options or ReconstructionOptions()).check()

@@ -35,12 +35,12 @@ from dataclasses import dataclass, field
 
 import torch
 
-from flamerecon.arguments import fields, instance, wrong_type, wrong_value
+from flamerecon.arguments import fields, instance, wrong_value
 from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError
 from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import score
-from flamerecon.fit.build import Setup, build, check_inputs
+from flamerecon.fit.build import Setup, build, check_frame_inputs
 from flamerecon.fit.debias import debias
 from flamerecon.fit.option_rules import check_section
 from flamerecon.fit.options import ReconstructionOptions
@@ -369,12 +369,7 @@ def reconstruct_motion(scenes: Sequence[Scene], options: ReconstructionOptions |
     ``scenes`` with the frames within ``motion.window`` of it warped onto it (module doc).
     Each frame is first reconstructed on its own; ``motion.window=1`` returns the target's
     single-frame reconstruction. Sets torch's seed and thread count as the options say."""
-    if isinstance(scenes, Scene) or not isinstance(scenes, Sequence):
-        raise wrong_type("reconstruct_motion.scenes", scenes, "a list of Scenes, consecutive frames in order")
-    if len(scenes) < 1:
-        raise wrong_value("reconstruct_motion.scenes", scenes, "a list of at least one Scene")
-    for i, scene in enumerate(scenes):
-        check_inputs(f"reconstruct_motion.scenes[{i}]", scene, options, device)
+    check_frame_inputs("reconstruct_motion", scenes, options, device, "consecutive frames in order")
     instance("reconstruct_motion.motion", motion, MotionOptions, null=True)
     options = (options or ReconstructionOptions()).check()
     motion = motion or MotionOptions()
