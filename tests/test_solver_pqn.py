@@ -7,7 +7,14 @@ import pytest
 import torch
 
 from flamerecon.solvers import Problem, make_solver, resolve_l1
-from tests.helpers import assert_resumes_exactly, csr, objective, sklearn_objective, tiny_problem
+from tests.helpers import (
+    assert_columns_solved_alone_alike,
+    assert_resumes_exactly,
+    csr,
+    objective,
+    sklearn_objective,
+    tiny_problem,
+)
 
 pytest.importorskip("sklearn.linear_model")
 
@@ -29,10 +36,7 @@ def test_pqn_in_float32_reaches_1e_6_with_each_column_its_own_problem():
     res = make_solver("pqn", tol=1e-6, max_iters=500).solve(Problem(csr(A), torch.tensor(b), lam))
     assert res.converged and (res.x >= 0).all()
     assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-6 * ref
-    alone = make_solver("pqn", tol=1e-6, max_iters=500).solve(
-        Problem(csr(A), torch.tensor(b[:, 1:2]), lam))
-    assert abs(objective(A, b[:, 1:2], lam, alone.x.numpy())
-               - objective(A, b[:, 1:2], lam, res.x[:, 1:2].numpy())) <= 1e-6 * ref
+    assert_columns_solved_alone_alike("pqn", {"tol": 1e-6, "max_iters": 500}, A, b, lam, res.x, 1e-6 * ref)
 
 
 def test_pqn_resumes_from_its_state_where_an_uninterrupted_solve_ends():

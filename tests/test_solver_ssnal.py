@@ -10,7 +10,13 @@ import torch
 
 from flamerecon.solvers import Problem, make_solver, resolve_l1
 from flamerecon.solvers.base import duality_gap
-from tests.helpers import csr, objective, sklearn_objective, tiny_problem
+from tests.helpers import (
+    assert_columns_solved_alone_alike,
+    csr,
+    objective,
+    sklearn_objective,
+    tiny_problem,
+)
 
 pytest.importorskip("sklearn.linear_model")
 
@@ -39,10 +45,7 @@ def test_ssnal_in_float32_reaches_1e_6_with_each_column_its_own_problem(shape):
     res = make_solver("ssnal", tol=1e-5, max_iters=100).solve(Problem(csr(A), torch.tensor(b), lam))
     assert res.converged and (res.x >= 0).all()
     assert abs(objective(A, b, lam, res.x.numpy()) - ref) <= 1e-6 * ref
-    alone = make_solver("ssnal", tol=1e-5, max_iters=100).solve(
-        Problem(csr(A), torch.tensor(b[:, 1:2]), lam))
-    assert abs(objective(A, b[:, 1:2], lam, alone.x.numpy())
-               - objective(A, b[:, 1:2], lam, res.x[:, 1:2].numpy())) <= 1e-6 * ref
+    assert_columns_solved_alone_alike("ssnal", {"tol": 1e-5, "max_iters": 100}, A, b, lam, res.x, 1e-6 * ref)
 
 
 def test_ssnal_nnls_matches_scipy_nnls():

@@ -8,6 +8,7 @@ from .interrupts import interrupt_at
 from .mounts import tmpfs
 from .paths import REPO, TINY_API_SETUP, python_stdout, repo_env
 from .problems import (
+           assert_columns_solved_alone_alike,
            assert_resumes_exactly,
            csr,
            objective,
@@ -17,7 +18,7 @@ from .problems import (
 )
 from .scene import defective, tiny_cfg, tiny_synthetic
 
-__all__ = ["FAST", "HELDOUT", "REPO", "SMALLER", "TINY", "TINY_API_SETUP", "TRAIN", "VIEWS", "CliRun", "assert_resumes_exactly", "csr",
+__all__ = ["FAST", "HELDOUT", "REPO", "SMALLER", "TINY", "TINY_API_SETUP", "TRAIN", "VIEWS", "CliRun", "assert_columns_solved_alone_alike", "assert_resumes_exactly", "csr",
            "defective", "interrupt_at", "objective", "python_stdout", "random_coo", "random_hull", "random_rays", "repo_env",
            "ring_of_cameras", "sklearn_objective", "tiny_cfg", "tiny_config", "tiny_problem",
            "tiny_synthetic", "tmpfs"]

@@ -38,6 +38,17 @@ def sklearn_objective(A: np.ndarray, b: np.ndarray, lam: float) -> float:
     return objective(A, b, lam, lasso.coef_.T.reshape(A.shape[1], -1))
 
 
+def assert_columns_solved_alone_alike(name: str, options: dict, A: np.ndarray, b: np.ndarray, lam: float,
+                                      x: torch.Tensor, tolerance: float) -> None:
+    """Solver ``name`` with ``options`` on column 1 of ``b`` alone reaches, within ``tolerance``,
+    the objective of column 1 of ``x`` (that column of a solve of every column)."""
+    from flamerecon.solvers import Problem, make_solver
+
+    alone = make_solver(name, **options).solve(Problem(csr(A), torch.tensor(b[:, 1:2]), lam))
+    assert abs(objective(A, b[:, 1:2], lam, alone.x.numpy())
+               - objective(A, b[:, 1:2], lam, x[:, 1:2].numpy())) <= tolerance
+
+
 def random_coo(seed: int = 0, N: int = 50, M: int = 40, nnz: int = 300):
     """A CsrOperator from random COO triplets with duplicates, and its dense (N, M) matrix."""
     g = np.random.default_rng(seed)
