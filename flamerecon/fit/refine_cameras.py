@@ -379,7 +379,7 @@ def camera_step(fit: CameraFit | JointFit, theta: torch.Tensor, sizes: torch.Ten
         return 0.5 * float((res.double() ** 2).sum()) / s2 + 0.5 * float(p @ p)
 
     cost = objective(r, psi)
-    mu, done = 1e-3, 0
+    mu, done, at_psi = 1e-3, 0, r  # at_psi: the residuals at psi, for rms_after
     for done in range(1, iterations + 1):
         H = torch.zeros(T * N_PARAMS, T * N_PARAMS, dtype=torch.float64)
         g = torch.zeros(T * N_PARAMS, dtype=torch.float64)
@@ -396,7 +396,8 @@ def camera_step(fit: CameraFit | JointFit, theta: torch.Tensor, sizes: torch.Ten
         for _ in range(8):
             delta = torch.linalg.solve(Hp + mu * torch.diag(torch.diagonal(Hp)), -gp)
             trial = psi + delta
-            trial_cost = objective(fit.residuals(theta_of(trial)), trial)
+            trial_res = fit.residuals(theta_of(trial))
+            trial_cost = objective(trial_res, trial)
             if trial_cost < cost:
                 improved = True
                 break
@@ -404,11 +405,11 @@ def camera_step(fit: CameraFit | JointFit, theta: torch.Tensor, sizes: torch.Ten
         if not improved:
             break
         gain = (cost - trial_cost) / max(cost, 1e-30)
-        psi, cost, mu = trial, trial_cost, max(mu / 10.0, 1e-7)
+        psi, cost, mu, at_psi = trial, trial_cost, max(mu / 10.0, 1e-7), trial_res
         if gain < 1e-6 or done == iterations:
             break
         r, J = fit.jacobian(theta_of(psi), active)
-    rms_after = math.sqrt(float((fit.residuals(theta_of(psi)).double() ** 2).mean()))
+    rms_after = math.sqrt(float((at_psi.double() ** 2).mean()))
     return theta_of(psi), {"rms_before": rms_before, "rms_after": rms_after, "iterations": done}
 
 
