@@ -188,6 +188,68 @@ def corrected_cameras(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Ten
     return make_cameras(K, E, cams.height, cams.width)
 
 
+def right_jacobian(w: torch.Tensor) -> torch.Tensor:
+    """SO(3)'s right Jacobian (T, 3, 3) at rotation vectors ``w`` (T, 3): Exp(w + d) = Exp(w)
+    Exp(J_r(w) d) to first order in d."""
+    theta = w.norm(dim=-1)[:, None, None]
+    small = theta < 1e-4
+    safe = torch.where(small, torch.ones_like(theta), theta)
+    a = torch.where(small, 0.5 - theta**2 / 24, (1 - torch.cos(safe)) / safe**2)
+    b = torch.where(small, 1 / 6 - theta**2 / 120, (safe - torch.sin(safe)) / safe**3)
+    W = skew(w)
+    return torch.eye(3, dtype=w.dtype, device=w.device) - a * W + b * (W @ W)
+
+
+def ray_tangents(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Tensor, uv: torch.Tensor,
+                 active: list[int]) -> torch.Tensor:
+    """d (origin, direction) / d theta (T, R, 6, 9) of the rays :func:`pixel_rays` gives through
+    pixels ``uv`` (T, R, 2) of ``corrected_cameras(cams, theta, pivot)``, analytic, in float64;
+    zero for parameters not in ``active``. A correction moves the camera by G(x) = R x + t about
+    ``pivot`` (R = Exp(w), t = pivot + v - R pivot) and re-focuses it (K'), so a pixel's ray
+    starts at G(c) and points along q = R Rc^T K'^-1 (u, v, 1), normalised (Rc: the camera's
+    rotation, c its centre)."""
+    T, R = uv.shape[:2]
+    dtype, device = torch.float64, uv.device
+    th = theta.detach().to(dtype)
+    Rg = torch.linalg.matrix_exp(skew(th[:, :3]))
+    Jr = right_jacobian(th[:, :3])
+    Rc = cams.extrinsics[:, :3, :3].to(dtype)
+    K = K_of(cams).to(dtype)
+    s = torch.exp(th[:, 6])
+    Kp = K.clone()
+    Kp[:, 0, :2] = K[:, 0, :2] * s[:, None]
+    Kp[:, 1, 1] = K[:, 1, 1] * s
+    Kp[:, 0, 2] += th[:, 7]
+    Kp[:, 1, 2] += th[:, 8]
+    pix = torch.cat([uv.to(dtype), torch.ones(T, R, 1, dtype=dtype, device=device)], -1).transpose(1, 2)
+    p = torch.linalg.solve(Kp, pix)  # (T, 3, R): K'^-1 (u, v, 1)
+    b = Rc.transpose(1, 2) @ p  # (T, 3, R)
+    q = Rg @ b
+    norm = q.norm(dim=1, keepdim=True)
+    d = q / norm
+    out = torch.zeros(T, R, 6, N_PARAMS, dtype=dtype, device=device)
+    arm = camera_centers(cams).to(dtype) - pivot.to(dtype)  # (T, 3)
+    out[:, :, :3, :3] = (-Rg @ skew(arm) @ Jr)[:, None]
+    out[:, :, :3, 3:6] = torch.eye(3, dtype=dtype, device=device)
+    bt = b.transpose(1, 2).reshape(-1, 3)  # (T R, 3)
+    dq = torch.zeros(T, R, 3, N_PARAMS, dtype=dtype, device=device)
+    dq[..., :3] = -(Rg[:, None] @ skew(bt).view(T, R, 3, 3)) @ Jr[:, None]
+    dK = torch.zeros(T, 3, 3, 3, dtype=dtype, device=device)  # d K' / d theta_6..8
+    dK[:, 0, 0, :2] = Kp[:, 0, :2]
+    dK[:, 0, 1, 1] = Kp[:, 1, 1]
+    dK[:, 1, 0, 2] = 1.0
+    dK[:, 2, 1, 2] = 1.0
+    for k in range(3):  # d p = -K'^-1 dK p
+        dp = -torch.linalg.solve(Kp, dK[:, k] @ p)
+        dq[..., 6 + k] = (Rg @ Rc.transpose(1, 2) @ dp).transpose(1, 2)
+    dn = d.transpose(1, 2)  # (T, R, 3)
+    project = (torch.eye(3, dtype=dtype, device=device) - dn[..., :, None] * dn[..., None, :])
+    out[:, :, 3:] = project @ dq / norm.transpose(1, 2)[..., None]
+    keep = torch.zeros(N_PARAMS, dtype=torch.bool, device=device)
+    keep[list(active)] = True
+    return out * keep
+
+
 def similarity(source: torch.Tensor, target: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
     """The similarity ``x -> s R x + t`` that maps points ``source`` (N, 3) onto ``target`` (N, 3)
     in the least-squares sense (Umeyama 1991), in float64: (s, R (3, 3), t (3,))."""
@@ -341,14 +403,9 @@ class CameraFit:
 
     def jacobian(self, theta: torch.Tensor, active: list[int]) -> tuple[torch.Tensor, torch.Tensor]:
         """(residuals (N, C), Jacobian (N, C, 9)): d pixel / d ray (one backward pass per
-        channel) times d ray / d theta (forward mode, one pass per active parameter)."""
+        channel) times d ray / d theta (analytic: :func:`ray_tangents`)."""
         theta = theta.detach()
-        tangents = torch.zeros(*self.uv.shape[:2], 6, N_PARAMS, device=theta.device)  # (T, R, 6, 9)
-        if active:  # every active parameter's direction in one batched forward-mode pass
-            directions = torch.zeros(len(active), *theta.shape, dtype=theta.dtype, device=theta.device)
-            directions[range(len(active)), :, active] = 1.0
-            pushed = torch.func.vmap(lambda d: torch.func.jvp(self.rays, (theta,), (d,))[1])(directions)
-            tangents[..., active] = pushed.permute(1, 2, 3, 0)
+        tangents = ray_tangents(self.cams, theta, self.pivot, self.uv, active).to(theta.dtype)  # (T, R, 6, 9)
         rays = self.rays(theta)[self.valid].detach().requires_grad_(True)
         with torch.enable_grad():
             pixels = self.render(rays)
