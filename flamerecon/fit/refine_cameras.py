@@ -26,8 +26,8 @@ Camera step: Levenberg-Marquardt on the corrections with the density fixed, over
 camera's silhouette pixels grown by a background band (at most ``max_rays`` per camera, shared
 among the frames). Its
 Jacobian comes from one backward pass per channel through the matrix-free renderer (a pixel
-depends only on its own ray: d pixel / d ray) chained with the forward-mode derivative of the
-rays (kornia ``PinholeCamera.unproject``) with respect to the corrections.
+depends only on its own ray: d pixel / d ray) chained with the derivative of the rays with
+respect to the corrections, in closed form (:func:`ray_tangents`).
 """
 
 from __future__ import annotations
@@ -172,7 +172,7 @@ def skew(w: torch.Tensor) -> torch.Tensor:
 
 def corrected_cameras(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Tensor) -> PinholeCamera:
     """The cameras ``cams`` (T) moved and re-focused by ``theta`` (T, 9) about ``pivot`` (3,);
-    differentiable in ``theta`` (also in forward mode)."""
+    differentiable in ``theta``."""
     theta = theta.to(cams.extrinsics.dtype)
     R = torch.linalg.matrix_exp(skew(theta[:, :3]))
     t = pivot + theta[:, 3:6] - (R @ pivot[:, None]).squeeze(-1)  # G(x) = R x + t
@@ -180,12 +180,16 @@ def corrected_cameras(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Ten
     bottom = torch.zeros_like(top[:, :1])
     bottom = torch.cat([bottom[..., :3], torch.ones_like(bottom[..., :1])], -1)
     E = cams.extrinsics @ torch.cat([top, bottom], 1)
-    K = K_of(cams)
+    return make_cameras(refocused(K_of(cams), theta), E, cams.height, cams.width)
+
+
+def refocused(K: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """Intrinsics K (T, 3, 3) re-focused by ``theta`` (T, 9): focal lengths (and skew) times
+    exp(theta[:, 6]), principal point moved by theta[:, 7:9] px; differentiable in ``theta``."""
     scale = torch.exp(theta[:, 6])
     row0 = torch.stack([K[:, 0, 0] * scale, K[:, 0, 1] * scale, K[:, 0, 2] + theta[:, 7]], -1)
     row1 = torch.stack([K[:, 1, 0], K[:, 1, 1] * scale, K[:, 1, 2] + theta[:, 8]], -1)
-    K = torch.stack([row0, row1, K[:, 2]], 1)
-    return make_cameras(K, E, cams.height, cams.width)
+    return torch.stack([row0, row1, K[:, 2]], 1)
 
 
 def right_jacobian(w: torch.Tensor) -> torch.Tensor:
@@ -214,13 +218,7 @@ def ray_tangents(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Tensor, 
     Rg = torch.linalg.matrix_exp(skew(th[:, :3]))
     Jr = right_jacobian(th[:, :3])
     Rc = cams.extrinsics[:, :3, :3].to(dtype)
-    K = K_of(cams).to(dtype)
-    s = torch.exp(th[:, 6])
-    Kp = K.clone()
-    Kp[:, 0, :2] = K[:, 0, :2] * s[:, None]
-    Kp[:, 1, 1] = K[:, 1, 1] * s
-    Kp[:, 0, 2] += th[:, 7]
-    Kp[:, 1, 2] += th[:, 8]
+    Kp = refocused(K_of(cams).to(dtype), th)
     pix = torch.cat([uv.to(dtype), torch.ones(T, R, 1, dtype=dtype, device=device)], -1).transpose(1, 2)
     p = torch.linalg.solve(Kp, pix)  # (T, 3, R): K'^-1 (u, v, 1)
     b = Rc.transpose(1, 2) @ p  # (T, 3, R)
