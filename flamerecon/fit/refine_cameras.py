@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
+from kornia.geometry.liegroup import So3
 
 from flamerecon.errors import ArgumentError
 from flamerecon.fit.option_rules import check_section
@@ -192,18 +193,6 @@ def refocused(K: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
     return torch.stack([row0, row1, K[:, 2]], 1)
 
 
-def right_jacobian(w: torch.Tensor) -> torch.Tensor:
-    """SO(3)'s right Jacobian (T, 3, 3) at rotation vectors ``w`` (T, 3): Exp(w + d) = Exp(w)
-    Exp(J_r(w) d) to first order in d."""
-    theta = w.norm(dim=-1)[:, None, None]
-    small = theta < 1e-4
-    safe = torch.where(small, torch.ones_like(theta), theta)
-    a = torch.where(small, 0.5 - theta**2 / 24, (1 - torch.cos(safe)) / safe**2)
-    b = torch.where(small, 1 / 6 - theta**2 / 120, (safe - torch.sin(safe)) / safe**3)
-    W = skew(w)
-    return torch.eye(3, dtype=w.dtype, device=w.device) - a * W + b * (W @ W)
-
-
 def ray_tangents(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Tensor, uv: torch.Tensor,
                  active: list[int]) -> torch.Tensor:
     """d (origin, direction) / d theta (T, R, 6, 9) of the rays :func:`pixel_rays` gives through
@@ -216,7 +205,7 @@ def ray_tangents(cams: PinholeCamera, theta: torch.Tensor, pivot: torch.Tensor, 
     dtype, device = torch.float64, uv.device
     th = theta.detach().to(dtype)
     Rg = torch.linalg.matrix_exp(skew(th[:, :3]))
-    Jr = right_jacobian(th[:, :3])
+    Jr = So3.right_jacobian(th[:, :3])  # Exp(w + d) = Exp(w) Exp(Jr d) to first order
     Rc = cams.extrinsics[:, :3, :3].to(dtype)
     Kp = refocused(K_of(cams).to(dtype), th)
     pix = torch.cat([uv.to(dtype), torch.ones(T, R, 1, dtype=dtype, device=device)], -1).transpose(1, 2)
