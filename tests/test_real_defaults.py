@@ -20,7 +20,7 @@ def test_scalarflow_picks_its_cross_validated_solver_grid_and_resolution():
     assert cfg.scene.name == "scalarflow" and cfg.scene.downscale == 4
     assert cfg.solver.name == "tv"
     assert (cfg.solver.tv, cfg.solver.l1_rel, cfg.solver.l1) == (0.02, 0.05, None)
-    # a small dual step reaches the objective in a third of the iterations (docs/results.md)
+    # a small dual step: the same held-out score in a third of the iterations (docs/results.md)
     assert (cfg.solver.dual_step, cfg.solver.max_iters) == (0.25, 100)
     assert (cfg.calibration.first_iterations, cfg.calibration.solve_iterations) == (30, 10)
     assert cfg.grid.resolution == 128

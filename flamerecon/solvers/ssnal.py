@@ -14,9 +14,9 @@ prox of sigma (l1 sum + the indicator of x >= 0)), by semismooth Newton: the sys
 (I + sigma A_J A_J^T) d = -grad on the voxels J where x~ > 0 is solved by conjugate gradients
 in the ray space (Jacobi-preconditioned), the step found by Armijo backtracking on psi (free:
 A^T d is computed once), until the paper's criterion (B) holds; then x <- x~(y) and sigma
-grows. The duality gap is that of x with its residual (base.duality_gap), as for every solver. The C colour columns are solved
-together (one product with C columns costs about one with one on the CPU): each has its own
-J, CG coefficients and step.
+grows. The duality gap is that of x with its residual (base.duality_gap), as for every solver.
+The C colour columns are solved together (one product with C columns costs about one with one
+on the CPU): each has its own J, CG coefficients and step.
 """
 
 from __future__ import annotations
