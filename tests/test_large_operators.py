@@ -8,8 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-import flamerecon.operators.projector as projector
-import flamerecon.operators.sparse as sparse
+from flamerecon.operators import projector, sparse
 from flamerecon.operators.projector import MatrixFreeOperator, assemble, assembled_memory
 from flamerecon.operators.sparse import CsrOperator, GrowingArray, transpose_csr
 from tests.helpers import random_coo, random_hull, random_rays

@@ -4,6 +4,8 @@ the operator norm, cached, against the largest singular value of the dense matri
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -110,7 +112,7 @@ def test_the_collatz_wielandt_bound_is_above_the_norm_and_tightens(seed):
     exact = float(torch.linalg.matrix_norm(dense(op, torch.float32), 2)) ** 2
     bounds = [collatz_wielandt_bound(op, iters=k) for k in (1, 2, 4, 40)]
     assert all(b >= exact * (1 - 1e-5) for b in bounds)
-    assert all(a >= b * (1 - 1e-6) for a, b in zip(bounds, bounds[1:]))  # never looser
+    assert all(a >= b * (1 - 1e-6) for a, b in itertools.pairwise(bounds))  # never looser
     assert bounds[-1] <= exact * 1.01
 
 

@@ -25,6 +25,9 @@ from flamerecon.scenes import Scene, SceneError
 
 log = logging.getLogger(__name__)
 
+#: an assembled operator at least this large is announced (INFO) before it is built: it takes
+#: tens of seconds (a full-resolution ScalarFlow frame on a 256-cell grid: 2.2 GiB, about 25 s)
+LOUD_OPERATOR_BYTES = 2**30
 #: share of the free memory a run may plan to use when ``projector.max_memory_gb`` is unset.
 MEMORY_HEADROOM = 0.8
 #: bytes per voxel of the dense arrays a run holds at once: voxel centres (12), carving (1 per
@@ -165,6 +168,10 @@ def choose_backend(
         )
     est = assembled_memory(grid, rays, voxel_index, step)
     if budget is None or est.peak_bytes <= budget:
+        if est.peak_bytes >= LOUD_OPERATOR_BYTES:
+            log.info("operator: %d rays x %d hull voxels, about %.3g nonzeros: %s for A and A^T (%s while it "
+                     "is assembled)", len(rays), int(voxel_index.numel()), est.nnz, format_bytes(est.operator_bytes),
+                     format_bytes(est.peak_bytes))
         return "assembled"
     figure = (
         f"the assembled operator for {len(rays)} rays x {int(voxel_index.numel())} hull voxels "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import torch
@@ -46,6 +47,19 @@ def available_bytes(device: torch.device | str = "cpu") -> int | None:
         except (ValueError, OSError, AttributeError):
             return None
     return min(found)
+
+
+def peak_memory(device: torch.device | str = "cpu") -> dict[str, float]:
+    """The process's peak memory so far, GiB: ``resident`` (the largest resident set, all
+    devices' host memory; ``ru_maxrss``) and on CUDA ``device`` (torch's largest allocation)."""
+    import resource
+
+    peak = float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+    out = {"resident": peak * (1 if sys.platform == "darwin" else 1024) / 2**30}  # bytes on macOS, KiB elsewhere
+    device = torch.device(device)
+    if device.type == "cuda":
+        out["device"] = torch.cuda.max_memory_allocated(device) / 2**30
+    return out
 
 
 def format_bytes(n: float) -> str:

@@ -48,6 +48,15 @@ _view = either(text, integer())
 _views = either(_view, list_of(_view, what="a list of view names or indices"))
 
 
+@takes(list, tuple)
+def rung(value) -> str | None:
+    """``ladder.rungs`` entry: [downscale (an integer >= 1), grid resolution (int or [nx, ny, nz])]."""
+    want = "a rung [downscale, grid resolution], e.g. [4, 128]"
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        return want
+    return None if integer(1)(value[0]) is None and _resolution(value[1]) is None else want
+
+
 @takes(dict)
 def candidate_table(value) -> str | None:
     """``select.candidates``: {solver name: [ {option: value}, ... ]}."""
@@ -88,6 +97,9 @@ RULES: dict[str, Rule] = {
                         null=True),
     "grid.level_iters": Rule(
         either(integer(1), list_of(integer(1), what="a list of integers >= 1")), null=True),
+    "ladder.rungs": Rule(list_of(rung, what="a list of rungs [downscale, grid resolution], e.g. [[4, 128], [2, 192]]")),
+    "ladder.iterations": Rule(either(integer(1), list_of(integer(1), what="a list of integers >= 1")), null=True),
+    "ladder.final_iterations": Rule(integer(1), null=True),
     "projector.backend": Rule(choice("auto", "assembled", "matrix_free")),
     "projector.step": Rule(number(0.01)),  # voxels; finer only multiplies samples (and memory)
     "projector.max_memory_gb": Rule(number(0, lo_open=True), null=True),
@@ -105,7 +117,7 @@ RULES: dict[str, Rule] = {
     "calibration.prior_principal_px": Rule(number(0, lo_open=True)),
     "calibration.fit_against": Rule(choice("all", "others")),
     "calibration.resolution": Rule(integer(1), null=True),
-    "calibration.frames": Rule(list_of(integer(0), what="a list of frame indices >= 0")),
+    "calibration.frames": Rule(either(choice("auto"), list_of(integer(0), what="a list of frame indices >= 0 or auto"))),
     "calibration.gauge": Rule(choice("mean", "similarity")),
     "calibration.rig": Rule(boolean),
     "calibration.first_iterations": Rule(integer(1), null=True),
@@ -314,7 +326,8 @@ NEEDS: dict[str, Need] = {
     "select.auto": Need(bool, _has_candidates, "candidates for the run's solver in select.candidates "
                         "(select.candidates.<solver.name>: a non-empty list)"),
     # calibration.frames alone is not refused: a scene preset sets it (scalarflow: [30, 50, 70]), and
-    # calibration.refine=none must turn the refinement off without the user emptying it too
+    # calibration.refine=none must turn the refinement off without the user emptying it too; nor are
+    # ladder.iterations / final_iterations (the scalarflow preset sets them; ladder.rungs=[] turns it off)
     "calibration.gauge": Need(_changed("mean"), _refined, _REFINEMENT),
     "calibration.rig": Need(bool, _refined, _REFINEMENT),
     "calibration.score_before": Need(bool, _refined, _REFINEMENT),

@@ -22,9 +22,14 @@ from kornia.geometry.camera import PinholeCamera
 from flamerecon.geometry.cameras import cameras_to, pixel_centers, pixel_rays, project_points
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.sparse import TRANSPOSE_BLOCK, CsrOperator, GrowingArray, stable_argsort
+from flamerecon.progress import Progress
 
 #: samples per chunk when marching (bounds memory: about 100 bytes per sample and channel).
 CHUNK_SAMPLES = 4_000_000
+#: a march or an assembly that lasts longer than this many seconds says how far it is, every
+#: :data:`PROGRESS_EVERY` seconds (a full-resolution frame's assembly takes about 25 s)
+PROGRESS_AFTER = 5.0
+PROGRESS_EVERY = 10.0
 #: ray samples per chunk when assembling (:data:`BYTES_PER_CHUNK_SAMPLE` each at the peak)
 ASSEMBLY_CHUNK_SAMPLES = 2_000_000
 
@@ -196,17 +201,20 @@ def _chunks(rays: Rays, grid: VoxelGrid, step: float):
 
 def integrate_dense(
     volume: torch.Tensor, grid: VoxelGrid, rays: Rays, step: float = 0.5,
-    box: tuple[torch.Tensor, torch.Tensor] | None = None,
+    box: tuple[torch.Tensor, torch.Tensor] | None = None, what: str = "marching rays",
 ) -> torch.Tensor:
     """Line integrals (R, C) of a dense volume (C, nz, ny, nx) along ``rays``; differentiable.
-    ``box`` may narrow the march to where the volume can be nonzero (see :func:`support_box`)."""
+    ``box`` may narrow the march to where the volume can be nonzero (see :func:`support_box`);
+    ``what`` names the march in its progress lines (a long one only)."""
     C = volume.shape[0]
     out = []
     frame = grid.normalized_frame(rays.origins.device)
+    progress = Progress(what, len(rays), "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
     for sl, smp in packed_samples(rays, grid, step, box, frame=frame):
         weighted = _sample(volume, smp.points) * smp.length  # (C, P); points as x, y, z in [-1, 1]
         sums = weighted.new_zeros(C, sl.stop - sl.start).index_add_(1, smp.ray, weighted)
         out.append(sums.T)
+        progress.update(sl.stop)
     if not out:
         return volume.new_zeros(0, C)
     return torch.cat(out, 0)
@@ -347,6 +355,7 @@ def assemble(
     cols_out, vals_out = GrowingArray(torch.int32, device), GrowingArray(torch.float32, device)  # row by row
     shape = torch.tensor(live.shape, device=device)
     frame = grid.index_frame(device)
+    progress = Progress("assembling the operator", N, "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
     for sl, smp in packed_samples(rays, grid, step, box, ASSEMBLY_CHUNK_SAMPLES, frame):
         u = smp.points.T.contiguous()  # (3, P) continuous voxel coordinates
         i0f = torch.floor(u)
@@ -377,6 +386,7 @@ def assemble(
         cols_out.append((key % M).to(torch.int32))  # columns ascending within each row
         vals_out.append(val)
         del smp, u, i0f, i0, idx, w, root, entry, key, order, val  # before the next chunk's
+        progress.update(sl.stop)
     crow = torch.zeros(N + 1, dtype=torch.long, device=device)
     torch.cumsum(counts, 0, out=crow[1:])
     return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, M))
@@ -448,11 +458,13 @@ class MatrixFreeOperator:
         volume = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device, requires_grad=True)
         total = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device)
         frame = self.grid.normalized_frame(y.device)
+        progress = Progress("the adjoint's march", self.shape[0], "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
         with torch.enable_grad():
             for sl, smp in packed_samples(self.rays, self.grid, self.step, self.box, frame=frame):
                 weighted = _sample(volume, smp.points) * smp.length  # (C, P)
                 (grad,) = torch.autograd.grad(weighted, volume, grad_outputs=y[sl].index_select(0, smp.ray).T)
                 total += grad
+                progress.update(sl.stop)
         return total.reshape(C, -1)[:, self.voxel_index].T.contiguous()
 
 
@@ -517,7 +529,8 @@ def render_image(
         seen = footprint(nonzero, grid, cameras_to(cams, volume.device)).reshape(-1)
         rays, _ = camera_rays(cams, seen.reshape(B, H, W).to(cams.intrinsics.device))
         pix = volume.new_zeros(B * H * W, C)
-        pix[seen] = integrate_dense(volume, grid, rays.to(volume.device), step, box)
+        pix[seen] = integrate_dense(volume, grid, rays.to(volume.device), step, box,
+                                    f"rendering {B} view{'s' if B != 1 else ''} of {W}x{H} px")
     return pix.T.reshape(C, B, H, W).transpose(0, 1).contiguous()
 
 
