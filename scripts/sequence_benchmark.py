@@ -28,7 +28,7 @@ from flamerecon.evaluate.protocols import PROTOCOLS, protocol_scores
 from flamerecon.fit.reconstruct import mean_of
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.progress import duration
-from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
+from flamerecon.run.cli import at_least, compose_train, output_file, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
 
@@ -41,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warm", action="store_true", help="warm-start each frame from the previous one")
     parser.add_argument("--protocol", choices=["run", *PROTOCOLS], default="run",
                         help="how the held-out view is scored (default: run, the run's own scores)")
-    parser.add_argument("--out", default=None, metavar="FILE.json", help="also write the per-frame figures as JSON")
+    parser.add_argument("--out", type=output_file, default=None, metavar="FILE.json",
+                        help="also write the per-frame figures as JSON")
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
     args = parser.parse_args(argv)
     frames_given = args.frames or ([60, 74] if args.protocol == "hyfluid" else [0, 74])
@@ -61,9 +62,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{len(frames)} frames, {'warm' if args.warm else 'cold'} starts, "
               f"{options.solver.name} on a {options.grid.resolution}-cell grid at scene.downscale="
               f"{base.scene.get('downscale', 1)}, calibration.refine={options.calibration.refine}; held-out scores: "
-              + (f"the {protocol.name} protocol ({protocol.view} at 1/{protocol.downscale} resolution, rows "
-                 f"{protocol.rows[0]}-{protocol.rows[1]}, columns {protocol.cols[0]}-{protocol.cols[1]})"
-                 if protocol else "the run's own, at its working resolution"), flush=True)
+              + (f"the {protocol.name} protocol ({protocol.view} at 1/{protocol.downscale} resolution"
+                 + (f", rows {protocol.rows[0]}-{protocol.rows[1]}, columns {protocol.cols[0]}-{protocol.cols[1]})"
+                    if protocol.rows else ", full frame)") if protocol else "the run's own, at its working resolution"),
+              flush=True)
         print(f"{'frame':>5} {'load s':>7} {'recon s':>8} {'score s':>8} {'iters':>6} {'held-out dB':>12} "
               f"{'SSIM':>7} {'detail':>7} {'train dB':>9}  eta", flush=True)
         previous, rows, per_frame, started = None, [], {}, time.perf_counter()

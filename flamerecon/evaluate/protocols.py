@@ -28,18 +28,20 @@ from flamerecon.scenes import Scene, load_scene
 @dataclass(frozen=True)
 class Protocol:
     """Which view is scored, at which ``downscale`` of the capture, on which crop (rows and
-    columns, [first, end) in pixels of those images), and the views fitted."""
+    columns, [first, end) in pixels of those images; None: all), and the views fitted."""
 
     name: str
     view: str
     downscale: int
-    rows: tuple[int, int]
-    cols: tuple[int, int]
+    rows: tuple[int, int] | None
+    cols: tuple[int, int] | None
     train: tuple[str, ...]
 
 
-PROTOCOLS = {"hyfluid": Protocol("hyfluid", "train02", 2, (90, 960), (45, 540),
-                                 ("train00", "train01", "train03", "train04"))}
+SCALARFLOW_TRAIN = ("train00", "train01", "train03", "train04")
+PROTOCOLS = {"hyfluid": Protocol("hyfluid", "train02", 2, (90, 960), (45, 540), SCALARFLOW_TRAIN),
+             # the same view and resolution, full frame: the ladder's runs compared at one resolution
+             "half": Protocol("half", "train02", 2, None, None, SCALARFLOW_TRAIN)}
 
 
 def structural_similarity(image: torch.Tensor, reference: torch.Tensor) -> float:
@@ -73,9 +75,9 @@ def protocol_scores(protocol: Protocol, scene_options: Mapping, scene: Scene, tr
     v = at.views.index(protocol.view)
     camera = resized_cameras(camera_subset(scene.cameras, [scene.views.index(protocol.view)]), *at.image_size)
     rendered = render_image(volume, grid, cameras_to(camera, volume.device), step)[0].cpu()
-    (r0, r1), (c0, c1) = protocol.rows, protocol.cols
-    image = at.to_recorded(rendered).clamp(0, 1)[:, r0:r1, c0:c1]
-    captured = at.recorded_view(v)[:, r0:r1, c0:c1]
+    rows, cols = (slice(*span) if span else slice(None) for span in (protocol.rows, protocol.cols))
+    image = at.to_recorded(rendered).clamp(0, 1)[:, rows, cols]
+    captured = at.recorded_view(v)[:, rows, cols]
     return {"psnr": psnr(image, captured), "ssim": structural_similarity(image, captured),
             "detail": detail_correlation(image, captured, detail_sigma(at)),
             "psnr_black": psnr(torch.zeros_like(captured), captured)}

@@ -62,18 +62,19 @@ class CaptureCalibration:
     history: list[dict]
     source: str
     file: Path | None
-    weights: dict | None = None  # the solver weights select.auto chose on the frames, when it ran
+    selection: dict | None = None  # select.auto's record of the capture's weights (chosen on the frames)
 
 
 def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
                        device: torch.device, frame_of: Callable[[Scene], CalibrationFrame],
-                       chosen: Callable[[], list[dict]] = list) -> CaptureCalibration:
+                       choose: Callable[[PinholeCamera, list[Scene]], dict | None] | None = None
+                       ) -> CaptureCalibration:
     """The training cameras ``train`` of ``scene`` refined over the frames
     ``options.calibration.frames`` of its capture (each loaded as :func:`load_frame` does and
     turned into a :class:`CalibrationFrame` by ``frame_of``), read from the capture's
-    calibration file when it exists, else fitted and written there. ``chosen()``: after the
-    fit, the weights select.auto chose on each frame (none when it is off); the capture's
-    choice (:func:`capture_weights`) is kept in the file for every later frame."""
+    calibration file when it exists, else fitted and written there. ``choose(cameras, frames)``:
+    the selection record of the capture's solver weights, chosen on those frames with the
+    fitted cameras (None: none), kept in the file for every later frame."""
     frames = [load_frame(scene, t) for t in options.calibration.frames]  # refuses a scene without config
     images = {f"frame{t}": f.images[train] for t, f in zip(options.calibration.frames, frames)}
     key = entry_key("calibration", calibration_key(scene, train, grid, options, device, images),
@@ -83,13 +84,13 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
     stored = read_calibration(path, key)
     if stored is not None:
         return CaptureCalibration(file_cameras(path, scene, train), list(stored["history"]), "read", path,
-                                  stored.get("weights"))
+                                  stored.get("selection"))
     found = refine(cameras_to(scene.cameras, device), train, [frame_of(f) for f in frames], grid,
                    options.calibration, float(options.projector.step))
-    weights = capture_weights(chosen(), options.select.candidates.get(options.solver.name) or ())
+    selection = None if choose is None else choose(found.cameras, frames)
     records = camera_records(scene.views, cameras_to(found.cameras, "cpu"), train, calibrated=scene.cameras)
     record = {"key": key, "frames": list(options.calibration.frames), "refine": options.calibration.refine,
-              "history": found.history, "weights": weights}
+              "history": found.history, "selection": selection}
     try:
         make_folder(path.parent)
         write_json_atomic(path, {"cameras": records, "calibration": record})
@@ -98,17 +99,7 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
                     "calibration.folder to a writable folder", path, err)
     cameras = cameras_from_records(records, scene.views, scene.cameras.height, scene.cameras.width)
     return CaptureCalibration(with_cameras(scene.cameras, train, camera_subset(cameras, train)), found.history,
-                              "fitted", path, weights)
-
-
-def capture_weights(chosen: list[dict], candidates) -> dict | None:
-    """The capture's weights from those chosen on each calibration frame: the choice most
-    frames made, a tie going to the candidate listed first (the strongest); None for none."""
-    if not chosen:
-        return None
-    order = [dict(c) for c in candidates]
-    votes = [(-chosen.count(c), order.index(c) if c in order else len(order), k) for k, c in enumerate(chosen)]
-    return dict(chosen[min(votes)[2]])
+                              "fitted", path, selection)
 
 
 def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
@@ -128,7 +119,7 @@ def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: Re
 
 
 def read_calibration(path: Path, key: str) -> dict | None:
-    """The ``calibration`` record (the fit's ``history``, the capture's ``weights``) of the
+    """The ``calibration`` record (the fit's ``history``, the capture's weight ``selection``) of the
     calibration file ``path`` when it holds the calibration ``key``; None when there is none
     (or it is unreadable or another's: it is fitted again)."""
     if not path.is_file():
@@ -136,7 +127,7 @@ def read_calibration(path: Path, key: str) -> dict | None:
     try:
         data = read_camera_file(path)
         if data["calibration"]["key"] == key:
-            return {"history": list(data["calibration"]["history"]), "weights": data["calibration"].get("weights")}
+            return {"history": list(data["calibration"]["history"]), "selection": data["calibration"].get("selection")}
     except (ConfigError, KeyError, TypeError) as err:
         log.warning("%s is not a calibration file (%s); fitting the cameras again", path, err)
         return None

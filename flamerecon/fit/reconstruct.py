@@ -45,6 +45,7 @@ from flamerecon.fit.workload import check_workload
 from flamerecon.geometry.cameras import camera_subset, cameras_to, resized_cameras
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
+from flamerecon.progress import Progress
 from flamerecon.rules import integer, number
 from flamerecon.scenes import Scene, capture_length, load_downscaled
 from flamerecon.solvers import Problem, Solver, SolveResult
@@ -460,7 +461,27 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     # cameras' errors into them (held-out train02, ScalarFlow frame 35: 31.84 dB against 33.23
     # with the gain), so they keep the penalised structure, only its level debiased
     fitting = options.replace(debias=DebiasOptions("gain")) if options.debias.method == "refit" else options
-    choices: list[dict] = []  # the weights select.auto chose on each frame's first solve
+
+    def capture_choice(cameras, sources: list[Scene]) -> dict | None:
+        """With select.auto: the selection record of the weights whose leave-one-view-out
+        PSNR, averaged over the calibration frames ``sources`` solved with the fitted
+        ``cameras``, is best (chosen with the capture's own cameras, in the fit's first solves,
+        the weights run stronger: the cameras' errors look like noise); None when off."""
+        if options.select.for_solver(options.solver.name) is None:
+            return None
+        tables = []
+        progress = Progress("the capture's weights on its calibration frames, with the fitted cameras", len(sources),
+                            "frame")
+        for source in sources:
+            fitted = replace(source, cameras=cameras_to(cameras, "cpu"))
+            tables.append(choose_weights(options, build(fitted, options, device, grid))[1]["candidates"])
+            progress.step(f"frame {source.meta.get('frame')}")
+        frames = [str(source.meta.get("frame")) for source in sources]
+        table = [{"overrides": rows[0]["overrides"], "psnr": sum(r["psnr"] for r in rows) / len(rows),
+                  "folds": {view: sum(r["folds"][view] for r in rows) / len(rows) for view in rows[0]["folds"]}}
+                 for rows in zip(*tables)]  # each averaged over the frames
+        best = max(range(len(table)), key=lambda k: table[k]["psnr"])
+        return {"chosen": dict(table[best]["overrides"]), "candidates": table, "frames": [int(f) for f in frames]}
 
     def frame_of(source: Scene) -> CalibrationFrame:
         images = source.images.to(device)
@@ -479,7 +500,6 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
             fitted = fit(setup, fold, x0)
             if start is None and not chosen and fitted.selection is not None:
                 chosen.append(dict(fitted.selection["chosen"]))
-                choices.append(chosen[0])
             return setup.volume(fitted.result.x)
 
         return CalibrationFrame(images, scene_masks(source, images, options), solve_density)
@@ -497,7 +517,7 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         found = CaptureCalibration(file_cameras(refining.file, scene, refined_views), [], "read",
                                    Path(refining.file))
     elif refining.frames:
-        found = capture_refinement(scene, refined_views, grid, options, device, frame_of, lambda: choices)
+        found = capture_refinement(scene, refined_views, grid, options, device, frame_of, capture_choice)
     else:
         fitted = refine(cameras_to(scene.cameras, device), train, [this], grid, refining, step)
         found = CaptureCalibration(fitted.cameras, fitted.history, "fitted", None)
@@ -514,8 +534,8 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         "file": None if found.file is None else str(found.file), "rounds": found.history,
         "cameras": {scene.views[v]: r for v, r in zip(refined_views, report)},
     }
-    if found.weights:
-        record["weights"] = found.weights
+    if found.selection:
+        record["selection"] = found.selection
     if initial is not None:
         before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
         record.update(train_psnr_before=mean_of(before["train"], "psnr"),
@@ -526,15 +546,16 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
 
 def with_capture_weights(options: ReconstructionOptions, calibration: dict | None) -> ReconstructionOptions:
     """With ``select.auto`` for the run's solver and a capture calibration that holds the weights
-    it chose on the calibration frames (``calibration["weights"]``): ``options`` with those
+    it chose on the calibration frames (``calibration["selection"]``): ``options`` with those
     weights and ``select.auto`` off: weights are chosen once per capture, not at every frame."""
-    weights = (calibration or {}).get("weights")
-    if not weights or options.select.for_solver(options.solver.name) is None:
+    selection = (calibration or {}).get("selection")
+    if not selection or options.select.for_solver(options.solver.name) is None:
         return options
+    weights = selection.get("chosen") if isinstance(selection, dict) else None
     try:
         solver = options.solver.with_values(**weights)
     except (FlameReconError, TypeError) as err:
-        raise ConfigError(f"{calibration.get('file')}: its weights {weights} do not fit solver "
+        raise ConfigError(f"{calibration.get('file')}: its chosen weights {weights} do not fit solver "
                           f"{options.solver.name} ({err}); delete the file to fit the capture again") from None
     log.info("weights chosen once for the capture on calibration.frames %s: %s", calibration.get("frames"), weights)
     return options.replace(solver=solver, select=replace(options.select, auto=False))
@@ -585,6 +606,7 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     if calibration is not None:
         timing["calibration"] = time.perf_counter() - clock
     options = with_capture_weights(options, calibration)
+    capture_selection = (calibration or {}).get("selection") if not options.select.auto else None
     clock = time.perf_counter()
     volume = coarse_levels(scene, options, device, volume, first, hook, records)
     if levels:
@@ -597,6 +619,8 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
     del volume
     found = fit(setup, final, x0, hook, Stage(len(levels), len(levels)), {"level_records": list(records)})
+    if capture_selection and found.selection is None:  # the capture's, chosen on its calibration frames
+        found.selection = {**capture_selection, "source": f"the capture's calibration ({calibration.get('file')})"}
     timing.update(found.seconds)
     if levels:
         records.append(level_record(setup, found.l1, found.result))
