@@ -25,6 +25,7 @@ from flamerecon.operators.projector import render_image
 from flamerecon.outputs.export import ALIASES, FORMATS, Density, export_density, load_density
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.resources import config_dir
+from flamerecon.rules import integer
 from flamerecon.run.folder import Run
 from flamerecon.scenes import SCENE_KEYS, SCENE_LOADERS, Scene, register_built_in
 from flamerecon.scenes import load_scene as load_scene_node
@@ -150,3 +151,20 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
                          np.array(grid.bbox_max), [result.scene.views[v] for v in views])
     Path(stem).parent.mkdir(parents=True, exist_ok=True)
     return export_density(volume, stem, formats, iso)
+
+
+def view(result, port: int = 8080, host: str = "127.0.0.1", device: str = "auto"):
+    """Serve ``result`` (a Reconstruction, a loaded Run, a run folder or a multirun folder) to a
+    browser, as ``flamerecon view`` does, and return the :class:`~flamerecon.viewer.server.Viewer`
+    while it serves in the background: open its ``url``, call its ``stop()`` when done. Needs
+    ``pip install 'flamerecon[view]'``."""
+    instance("view.result", result, (Reconstruction, Run, str, os.PathLike),
+             "a Reconstruction, a Run, or a run or multirun folder")
+    value("view.port", port, integer(1, 65535))
+    instance("view.host", host, str, "an address such as 127.0.0.1")
+    instance("view.device", device, (str, torch.device), "a device name (auto, cpu, cuda)")
+    from flamerecon.viewer.server import Viewer
+
+    viewer = Viewer(result, host, port, str(device))
+    print(f"flamerecon view: open {viewer.url}")
+    return viewer

@@ -58,9 +58,9 @@ print(json.dumps(out))
 def openvdb_missing() -> str | None:
     """Why OpenVDB's reader cannot run here, or None."""
     try:
-        found = subprocess.run([OPENVDB_PYTHON, "-c", "import pyopenvdb"], capture_output=True, timeout=60)
+        found = subprocess.run([OPENVDB_PYTHON, "-c", "import pyopenvdb"], capture_output=True, timeout=60, check=False)
         if found.returncode != 0:
-            found = subprocess.run([OPENVDB_PYTHON, "-c", "import openvdb"], capture_output=True, timeout=60)
+            found = subprocess.run([OPENVDB_PYTHON, "-c", "import openvdb"], capture_output=True, timeout=60, check=False)
     except (OSError, subprocess.TimeoutExpired) as err:
         return f"{OPENVDB_PYTHON} cannot run ({err}); install python3-openvdb"
     if found.returncode != 0:
