@@ -15,6 +15,7 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_value
+from flamerecon.device import resolve_device
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
@@ -163,6 +164,7 @@ def view(result, port: int = 8080, host: str = "127.0.0.1", device: str = "auto"
     value("view.port", port, integer(1, 65535))
     instance("view.host", host, str, "an address such as 127.0.0.1")
     instance("view.device", device, (str, torch.device), "a device name (auto, cpu, cuda)")
+    resolve_device(device, "view.device")
     from flamerecon.viewer.server import Viewer
 
     viewer = Viewer(result, host, port, str(device))

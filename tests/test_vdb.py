@@ -154,3 +154,27 @@ def test_the_export_script_writes_a_vdb(tmp_path):
     assert proc.stdout.split() == [str(tmp_path / "density.vdb")]
     grid = read_with_openvdb(tmp_path / "density.vdb", (13, 21, 11))["density"]
     np.testing.assert_array_equal(grid["values"], volume[0].transpose(2, 1, 0))
+
+
+@pytest.mark.e2e
+def test_blender_renders_the_vdb_by_the_readmes_steps(tmp_path):
+    """examples/blender_flame.py (the README's three steps) in Blender, where it is installed:
+    a blob of emission in the middle of the box is a bright middle on a black image."""
+    import shutil
+
+    import cv2
+
+    blender = shutil.which("blender")
+    if blender is None:
+        pytest.skip("Blender is not installed (apt-get install blender)")
+    z, y, x = np.meshgrid(*(np.linspace(-1, 1, n) for n in (12, 20, 12)), indexing="ij")
+    blob = np.exp(-4 * (x**2 + (y / 1.5) ** 2 + z**2)).astype(np.float32)[None]
+    save_density(tmp_path / "density.npz", blob, [0, 0, 0], [0.6, 1.0, 0.6], ["a"])
+    export_density(load_density(tmp_path), tmp_path / "density", ["vdb"])
+    proc = subprocess.run([blender, "-b", "--python-exit-code", "1", "-P", str(REPO / "examples" / "blender_flame.py"),
+                           "--", str(tmp_path / "density.vdb"), str(tmp_path / "flame.png"), "--size", "48x64",
+                           "--samples", "4"], capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    image = cv2.imread(str(tmp_path / "flame.png"), cv2.IMREAD_GRAYSCALE).astype(float)
+    assert image.shape == (64, 48)
+    assert image[24:40, 16:32].mean() > 40 and image[:6, :6].mean() < 10
