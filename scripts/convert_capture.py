@@ -9,7 +9,7 @@ pinf: a PINF/HyFluid info.json (or its folder): cameras, their videos or frame f
 (cameras.txt, images.txt; `colmap model_converter --output_type TXT` writes it from a binary one),
 one camera per image, named by its file stem, the images in --images (default: the model folder's
 ../../images, COLMAP's layout). --holdout names held-out cameras, --bbox gives the box
-(xmin,ymin,zmin,xmax,ymax,zmax in world units); else the loader estimates it from the silhouettes.
+(--bbox=xmin,ymin,zmin,xmax,ymax,zmax in world units); else the loader estimates it from the silhouettes.
 Check the result with scripts/check_capture.py scene=opencv scene.root=OUT (docs/own_capture.md).
 """
 
