@@ -58,6 +58,7 @@ API = {
     "reconstruct_frames": "fit.joint_frames",
     "MotionOptions": "fit.motion", "MotionReconstruction": "fit.motion", "reconstruct_motion": "fit.motion",
     "Problem": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes", "view": "api",
+    "framing_camera": "api", "save_image": "api",
 }
 # ``fit`` is the package flamerecon.fit itself, callable as flamerecon.fit.reconstruct.fit: a
 # package and a function cannot both be the attribute ``flamerecon.fit``.
@@ -66,8 +67,8 @@ __all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOpt
            "JointReconstruction", "MotionOptions", "MotionReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
            "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
            "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions", "Stage",
-           "VoxelGrid", "build", "export", "fit", "load_run", "load_scene", "look_at_camera", "make_problem",
-           "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames", "reconstruct_motion", "render", "score", "view"]
+           "VoxelGrid", "build", "export", "fit", "framing_camera", "load_run", "load_scene", "look_at_camera", "make_problem",
+           "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames", "reconstruct_motion", "render", "save_image", "score", "view"]
 
 
 def __getattr__(name: str):
