@@ -76,6 +76,17 @@ def sweep(tmp_path: Path) -> Path:
     return tmp_path / "sweep"
 
 
+def pinf_capture(tmp_path: Path) -> Path:
+    """A one-camera PINF info.json (the converter's input)."""
+    import json
+
+    (tmp_path / "pinf").mkdir()
+    entry = {"file_name": "cam00.mp4", "camera_hw": [4, 6], "camera_angle_x": 0.8,
+             "transform_matrix": np.eye(4).tolist()}
+    (tmp_path / "pinf" / "info.json").write_text(json.dumps({"train_videos": [entry]}))
+    return tmp_path / "pinf" / "info.json"
+
+
 def copied(run: Path, tmp_path: Path) -> Path:
     return Path(shutil.copytree(run, tmp_path / "run"))
 
@@ -88,6 +99,10 @@ CALLS = {
     "benchmark": (lambda t, run, dump: ["--grid", "8", "--budget", "0.2", "--peers", "--solvers", "fista",
                                         "--reference-iters", "20", "--dump", str(dump), "--out",
                                         str(t / "new" / "b.json"), "--device", "cpu"], r"wrote .*b\.json"),
+    "check_capture": (lambda t, run, dump: ["scene=opencv", f"scene.root={REPO / 'examples' / 'capture'}",
+                                            "--out", str(t / "check")], r"hull IoU"),
+    "convert_capture": (lambda t, run, dump: ["pinf", str(pinf_capture(t)), str(t / "converted" / "calibration.yaml")],
+                        r"calibration\.yaml: 1 cameras \(cam00\)"),
     "compare_methods": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0", "--method", "plain=",
                                               "--out", str(t / "new" / "c.json")], r"mean +plain"),
     "cross_validate": (lambda t, run, dump: [*SYNTHETIC, "--sweep", "solver.l1_rel=0.01", "--exclude", "cam04",
