@@ -107,9 +107,12 @@ def parse_orbit(spec: str) -> tuple[float, float, float | None]:
 
 
 def labelled(image: np.ndarray, text: str) -> np.ndarray:
-    """An (H, W, 3) uint8 render with ``text`` in its top-left corner, to be read alone."""
+    """An (H, W, 3) uint8 render with ``text`` in its top-left corner, to be read alone (left
+    as it is where the text would not fit: the file's name says the same)."""
     image = np.ascontiguousarray(image)
-    cv2.putText(image, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    (width, height), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)
+    if width + 8 <= image.shape[1] and 3 * height <= image.shape[0]:
+        cv2.putText(image, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
     return image
 
 

@@ -257,8 +257,9 @@ def test_the_slices_figure_has_a_colour_bar(tmp_path, monkeypatch):
     slices_figure(tmp_path / "slices.png", _blob(), LO, HI)
     axes = made[0].axes
     assert len(axes) == 4  # three planes and the colour bar
-    assert [a.get_xlabel() + a.get_ylabel() for a in axes[:3]] == ["xy", "zy", "xz"]
-    assert axes[3].get_ylabel() == "density"
+    assert [a.get_xlabel()[0] + a.get_ylabel()[0] for a in axes[:3]] == ["xy", "zy", "xz"]
+    assert all(a.get_xlabel().endswith(" (world units)") for a in axes[:3])
+    assert axes[3].get_ylabel() == "density (image units per world unit)"
     assert "centre of mass" in made[0].get_suptitle()
 
 
