@@ -18,6 +18,7 @@ import numpy as np
 
 import flamerecon as fr
 from flamerecon.fit.reconstruct import mean_of
+from flamerecon.progress import duration
 from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
@@ -58,8 +59,10 @@ def main(argv: list[str] | None = None) -> int:
             ssim, detail = mean_of(metrics["heldout"], "ssim"), mean_of(metrics["heldout"], "detail")
             rows.append((loaded - clock, solved - loaded, scored - solved, rec.fit.result.iterations, held,
                          ssim, detail, train))
+            left = (time.perf_counter() - started) / len(rows) * (len(frames) - len(rows))  # the ETA
             print(f"{t:5d} {rows[-1][0]:7.2f} {rows[-1][1]:8.2f} {rows[-1][2]:8.2f} {rows[-1][3]:6d} "
-                  f"{held:12.2f} {ssim:7.4f} {detail:7.3f} {train:9.2f}", flush=True)
+                  f"{held:12.2f} {ssim:7.4f} {detail:7.3f} {train:9.2f}  {len(rows)}/{len(frames)}, "
+                  f"{duration(left)} left", flush=True)
             previous = rec.density.cpu()
         wall = time.perf_counter() - started
         data = np.array(rows)

@@ -128,7 +128,8 @@ CALLS = {
                                              "--out", str(t / "new" / "r.jsonl")], r"    0 pose "),
     "render": (lambda t, run, dump: [str(run), "--camera", "orbit:0,10", "--width", "16", "--height", "12",
                                      "--out", str(t / "renders")], r"orbit_az0_el10_.*\.png"),
-    "sequence_benchmark": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC], r"2 frames in .* per minute"),
+    "sequence_benchmark": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC],
+                           r"1/2, \d+ s left\n(.|\n)*2/2, 0 s left\n(.|\n)*2 frames in .* per minute"),
     "temporal_eval": (lambda t, run, dump: [*SYNTHETIC, "scene.frames=[0,1]", "--weights", "0:0", "--no-baseline"],
                       r"joint l2=0 tv=0 .* +1 "),
 }
