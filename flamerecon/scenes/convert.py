@@ -130,7 +130,7 @@ def read_colmap_cameras(path: Path) -> dict[str, tuple[np.ndarray, list[float], 
 
 
 def quaternion_matrix(qw: float, qx: float, qy: float, qz: float) -> np.ndarray:
-    """COLMAP's (w, x, y, z) unit quaternion as a rotation matrix (3, 3)."""
+    """A (w, x, y, z) quaternion (COLMAP's, viser's), normalised, as a rotation matrix (3, 3)."""
     q = np.array([qw, qx, qy, qz], float)
     w, x, y, z = q / np.linalg.norm(q)
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

@@ -29,6 +29,7 @@ from flamerecon.operators.projector import render_image
 from flamerecon.outputs.export import voxel_size
 from flamerecon.outputs.figures import centroid_index, to_display
 from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface
+from flamerecon.scenes.convert import quaternion_matrix
 from flamerecon.viewer.content import SCORE_KEYS, ViewFrame, frames_of
 
 #: seconds the camera must rest before the full-resolution render
@@ -57,10 +58,7 @@ def browser_camera(wxyz, position, fov: float, width: int, height: int):
     """The kornia camera (batch of 1) of a browser's view: viser's camera-to-world rotation
     ``wxyz`` and ``position`` (OpenCV axes: x right, y down, z forward), vertical field of view
     ``fov`` in radians, an image ``width`` x ``height``, principal point at its centre."""
-    w, x, y, z = (float(v) for v in wxyz)
-    rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    rotation = quaternion_matrix(*(float(v) for v in wxyz))
     world_to_camera = np.eye(4)
     world_to_camera[:3, :3] = rotation.T
     world_to_camera[:3, 3] = -rotation.T @ np.asarray(position, float)
