@@ -22,7 +22,16 @@ from flamerecon.geometry.cameras import opencv_w2c_to_opengl_c2w
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.convert import colmap_to_opencv, pinf_to_opencv, write_calibration
 from tests.helpers import REPO, repo_env
-from tests.helpers.views import BOX, HEIGHT, NAMES, WIDTH, centred_K, random_images, ring_cameras, write_png
+from tests.helpers.views import (
+    BOX,
+    HEIGHT,
+    NAMES,
+    WIDTH,
+    centred_K,
+    random_images,
+    ring_cameras,
+    write_png,
+)
 
 EXAMPLE = REPO / "examples" / "capture"
 REAL = REPO.parent / "shared" / "data" / "scalarflow_real"
