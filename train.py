@@ -1,11 +1,12 @@
 """Reconstruct a flame: ``python train.py [key=value ...]``, the same command as ``flamerecon``
-(:mod:`flamerecon.run.train`; Hydra, see conf/train.yaml).
+(:mod:`flamerecon.run.train`; Hydra, see conf/train.yaml); ``python train.py view RUN_DIR`` is
+``flamerecon view`` (:mod:`flamerecon.viewer.command`).
 
 Bad input ends in one line naming the file and field (exit status 2; ``debug=true`` for the
 traceback); ``resume=RUN_DIR`` continues an interrupted run in its folder.
 """
 
-from flamerecon.run.train import main
+from flamerecon.__main__ import main
 
 if __name__ == "__main__":
     main()

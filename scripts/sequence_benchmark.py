@@ -67,9 +67,9 @@ def main(argv: list[str] | None = None) -> int:
                     if protocol.rows else ", full frame)") if protocol else "the run's own, at its working resolution"),
               flush=True)
         print(f"{'frame':>5} {'load s':>7} {'recon s':>8} {'score s':>8} {'iters':>6} {'held-out dB':>12} "
-              f"{'SSIM':>7} {'detail':>7} {'train dB':>9}  eta", flush=True)
+              f"{'SSIM':>7} {'detail':>7} {'train dB':>9}  done, left", flush=True)
         previous, rows, per_frame, started = None, [], {}, time.perf_counter()
-        for k, t in enumerate(frames):
+        for t in frames:
             clock = time.perf_counter()
             scene = load_scene({**base.scene, "frame": t})
             loaded = time.perf_counter()
@@ -88,10 +88,10 @@ def main(argv: list[str] | None = None) -> int:
             per_frame[str(t)] = {"psnr": held["psnr"], "ssim": held["ssim"], "detail": held["detail"],
                                  "train_psnr": train, "seconds": scored - clock, "reconstruction_seconds": solved - loaded,
                                  "iterations": rec.fit.result.iterations}
-            elapsed = time.perf_counter() - started
-            eta = duration(elapsed / (k + 1) * (len(frames) - k - 1))
+            left = (time.perf_counter() - started) / len(rows) * (len(frames) - len(rows))  # the ETA
             print(f"{t:5d} {rows[-1][0]:7.2f} {rows[-1][1]:8.2f} {rows[-1][2]:8.2f} {rows[-1][3]:6d} "
-                  f"{held['psnr']:12.2f} {held['ssim']:7.4f} {held['detail']:7.3f} {train:9.2f}  {eta}", flush=True)
+                  f"{held['psnr']:12.2f} {held['ssim']:7.4f} {held['detail']:7.3f} {train:9.2f}  {len(rows)}/{len(frames)}, "
+                  f"{duration(left)} left", flush=True)
             previous = rec.density.cpu()
             del rec, scene
         wall = time.perf_counter() - started

@@ -76,6 +76,17 @@ def sweep(tmp_path: Path) -> Path:
     return tmp_path / "sweep"
 
 
+def pinf_capture(tmp_path: Path) -> Path:
+    """A one-camera PINF info.json (the converter's input)."""
+    import json
+
+    (tmp_path / "pinf").mkdir()
+    entry = {"file_name": "cam00.mp4", "camera_hw": [4, 6], "camera_angle_x": 0.8,
+             "transform_matrix": np.eye(4).tolist()}
+    (tmp_path / "pinf" / "info.json").write_text(json.dumps({"train_videos": [entry]}))
+    return tmp_path / "pinf" / "info.json"
+
+
 def copied(run: Path, tmp_path: Path) -> Path:
     return Path(shutil.copytree(run, tmp_path / "run"))
 
@@ -88,6 +99,10 @@ CALLS = {
     "benchmark": (lambda t, run, dump: ["--grid", "8", "--budget", "0.2", "--peers", "--solvers", "fista",
                                         "--reference-iters", "20", "--dump", str(dump), "--out",
                                         str(t / "new" / "b.json"), "--device", "cpu"], r"wrote .*b\.json"),
+    "check_capture": (lambda t, run, dump: ["scene=opencv", f"scene.root={REPO / 'examples' / 'capture'}",
+                                            "--out", str(t / "check")], r"hull IoU"),
+    "convert_capture": (lambda t, run, dump: ["pinf", str(pinf_capture(t)), str(t / "converted" / "calibration.yaml")],
+                        r"calibration\.yaml: 1 cameras \(cam00\)"),
     "compare_methods": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0", "--method", "plain=",
                                               "--out", str(t / "new" / "c.json")], r"mean +plain"),
     "cross_validate": (lambda t, run, dump: [*SYNTHETIC, "--sweep", "solver.l1_rel=0.01", "--exclude", "cam04",
@@ -118,7 +133,8 @@ CALLS = {
                                               "log.eval_every=0", "device=cpu", "--out", str(t / "new" / "s.json"),
                                               "--rungs", "4:8", "2:12"],
                         r"(?s)\s+4\s+8\s.*\n\s+2\s+12\s.*wrote .*s\.json"),
-    "sequence_benchmark": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC], r"2 frames in .* per minute"),
+    "sequence_benchmark": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC],
+                           r"1/2, \d+ s left\n(.|\n)*2/2, 0 s left\n(.|\n)*2 frames in .* per minute"),
     "temporal_eval": (lambda t, run, dump: [*SYNTHETIC, "scene.frames=[0,1]", "--weights", "0:0", "--no-baseline"],
                       r"joint l2=0 tv=0 .* +1 "),
 }

@@ -171,7 +171,9 @@ def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: li
     folder = make_folder(run_dir / "renders")
     stems = file_stems(scene.views)
     for img, v in zip(rendered, views):
-        panel = heldout_figure(img, scene.images[v], scene.views[v])
+        captured = scene.recorded_view(v)
+        panel = heldout_figure(img, scene.images[v], scene.views[v], view_psnr(img, scene, v),
+                               psnr(torch.zeros_like(captured), captured))
         ok, png = cv2.imencode(".png", np.ascontiguousarray(panel[..., ::-1]))
         if not ok:
             raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")

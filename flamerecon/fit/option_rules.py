@@ -206,8 +206,8 @@ RULES: dict[str, Rule] = {
     "scene.azimuths": Rule(list_of(number(), what="a list of camera azimuths in degrees"), null=True),
     "scene.calibration_error": Rule(number(0)),
     # export/*.yaml
-    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "ply", "obj", "mesh", "all"),
-                                   what="a list of vti, nrrd, raw, ply, obj, mesh, all")),
+    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "vdb", "ply", "obj", "mesh", "all"),
+                                   what="a list of vti, nrrd, raw, vdb, ply, obj, mesh, all")),
     "export.iso": Rule(number(0, 1, lo_open=True, hi_open=True)),
 }
 

@@ -12,6 +12,8 @@ Exports (all written atomically):
   time-series index over several of them; needs the optional ``vtk`` package;
 - NRRD ``.nrrd`` with space origin and directions; needs the optional ``pynrrd`` package;
 - raw little-endian float32 ``.raw`` with a JSON header ``.raw.json`` that says how to read it;
+- OpenVDB ``.vdb`` float grids in the world frame (Blender, Houdini;
+  :mod:`flamerecon.outputs.vdb`, no extra package);
 - an iso-surface mesh as ``.ply`` and/or ``.obj`` (:mod:`flamerecon.outputs.mesh`, needs the
   optional ``scikit-image`` package); ``mesh`` names both, ``all`` every format.
 """
@@ -29,9 +31,10 @@ import numpy as np
 from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.outputs.atomic import atomic_path, save_npz_atomic, write_json_atomic
 from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface, marching_cubes, write_obj, write_ply
+from flamerecon.outputs.vdb import write_vdb
 
 DENSITY_FILE = "density.npz"
-FORMATS = ("vti", "nrrd", "raw", "ply", "obj")
+FORMATS = ("vti", "nrrd", "raw", "vdb", "ply", "obj")
 #: names for several formats at once
 ALIASES = {"all": FORMATS, "mesh": ("ply", "obj")}
 _RESERVED = ("density", "bbox_min", "bbox_max", "views")
@@ -353,8 +356,8 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
 def export_density(
     volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO
 ) -> list[Path]:
-    """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.ply``
-    and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
+    """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.vdb``,
+    ``.ply`` and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
     see :func:`~flamerecon.outputs.mesh.iso_surface`)."""
     formats = _check_formats(formats)
     stem = Path(out_stem)
@@ -366,6 +369,10 @@ def export_density(
         written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args))
     if "raw" in formats:
         written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, views=volume.views))
+    if "vdb" in formats:
+        written.append(write_vdb(stem.with_name(stem.name + ".vdb"), volume.density,
+                                 sample_origin(*args[1:], volume.density.shape),
+                                 voxel_size(*args[1:], volume.density.shape), channel_names(len(volume.density))))
     meshes = [(f, w) for f, w in (("ply", write_ply), ("obj", write_obj)) if f in formats]
     if meshes:
         vertices, faces = iso_surface(*args, iso=iso)

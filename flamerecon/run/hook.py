@@ -38,7 +38,7 @@ class Monitor:
     The held-out views are rendered at most every ``eval_every`` iterations (0: never) and
     only while the monitor's own wall time, this render included (predicted from the last
     one), stays within ``eval_share`` of the solve's (None: no limit), so that past the first
-    render they cost at most that share; on the final grid (``tag_root`` ``""``) never at the
+    render (always made) they cost at most that share; on the final grid (``tag_root`` ``""``) never at the
     last iteration (``total``), whose pictures the run's final evaluation logs. :attr:`seconds`
     is the wall time spent here.
     """
@@ -66,7 +66,7 @@ class Monitor:
         values = {k: info[k] for k in ("objective", "data", "l1", "smooth", "tv", "rel_gap") if k in info}
         values["nonzero_fraction"] = float((x > 0).any(1).float().mean())
         self.writer.scalars(it, values, prefix=f"{self.tag_root}solve")
-        affordable = self.share is None or (
+        affordable = self.share is None or self.last_pictures == 0 or (
             self.seconds + self.render_seconds <= self.share * (now - self.started))
         if self.every > 0 and it - self.last_pictures >= self.every and it != self.left_to_evaluation and affordable:
             start = time.perf_counter()
@@ -105,7 +105,7 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
 class RunOptions:
     """The run layer's ``log:`` and ``checkpoint:`` nodes."""
 
-    eval_every: int = 100
+    eval_every: int = 20
     eval_share: float | None = 0.1
     checkpoint_every: int = 100
     divergence_factor: float = 1.0e3

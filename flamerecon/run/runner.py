@@ -34,10 +34,10 @@ from flamerecon.errors import (
     errno_text,
 )
 from flamerecon.outputs.atomic import atomic_write_text
+from flamerecon.outputs.sweep import FAILED_FILE, sweep_table, write_sweep_csv
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
 from flamerecon.run.cli import one_line
 
-FAILED_FILE = "FAILED"
 #: what Hydra (and the lock) put into a run or sweep folder before the run does any work
 HYDRA_ENTRIES = frozenset({".hydra", "train.log", "multirun.yaml", ".lock"})
 #: run and sweep folders this process made (:class:`LockRunFolder`) -> the topmost folder made
@@ -93,6 +93,24 @@ def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
         scene.root = str((Path(start) / path).resolve())
 
 
+def config_block(cfg: DictConfig, run_dir: str | Path, overrides: list[str] | None) -> str:
+    """The composed config's nodes that set a run apart, as YAML (scene, holdout, device, grid,
+    solver, and debias, select and calibration when they are on), with the command line's
+    overrides and where the whole config is kept; printed when a run starts."""
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    shown = {k: plain[k] for k in ("scene", "holdout", "device", "grid", "solver") if k in plain}
+    if (plain.get("debias") or {}).get("method", "none") != "none":
+        shown["debias"] = plain["debias"]
+    if (plain.get("select") or {}).get("auto"):
+        shown["select"] = {k: v for k, v in plain["select"].items() if k != "candidates"}
+    if (plain.get("calibration") or {}).get("refine", "none") != "none":
+        shown["calibration"] = plain["calibration"]
+    text = OmegaConf.to_yaml(OmegaConf.create(shown)).rstrip()
+    return (f"config (overrides: {' '.join(overrides or []) or 'none'}; all of it: "
+            f"{Path(run_dir) / '.hydra' / 'config.yaml'}, or python train.py --cfg job):\n"
+            + "\n".join(f"  {line}" for line in text.splitlines()))
+
+
 def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
              cwd: str | Path | None = None, overrides: list[str] | None = None) -> float | None:
     """Reconstruct (or resume, with ``resume=RUN_DIR``: the run's own config, with the budget
@@ -122,6 +140,7 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
             run_dir = resumed
         else:
             anchor_scene_root(cfg, start)
+            print(config_block(cfg, run_dir, overrides), flush=True)
             metrics = reconstruct(cfg, run_dir)
     except FlameReconError as err:
         if debug:
@@ -232,10 +251,18 @@ class LockRunFolder(Callback):
 
 
 class FailureSummary(Callback):
-    """Hydra callback: after a multirun, list the jobs that failed and exit with status 2."""
+    """Hydra callback: after a multirun, print its jobs side by side (what set each apart, its
+    held-out scores; also ``sweep_summary.csv``), then list the jobs that failed and exit with
+    status 2."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
+        if sweep_dir.is_dir():
+            print(sweep_table(sweep_dir), flush=True)
+            try:
+                print(f"table: {write_sweep_csv(sweep_dir)}", flush=True)
+            except FlameReconError as err:  # a full disk: the table above is printed all the same
+                print(f"flamerecon: {err}", file=sys.stderr)
         failed = failures(sweep_dir)
         if not failed:
             return
