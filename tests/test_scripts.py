@@ -122,6 +122,7 @@ CALLS = {
                       r"cam00: PSNR"),
     "motion_eval": (lambda t, run, dump: [*SYNTHETIC, "--frames", "1", "--windows", "1,3", "--decay", "1",
                                           "--static"], r"mean +3 density s=0.01 decay=1 .*\n.*static"),
+    "operator_memory": (lambda t, run, dump: ["--grid", "8", *SYNTHETIC], r"operator: \d+ rays .* nonzeros \(estimate"),
     "preconditioning_study": (lambda t, run, dump: ["--grid", "8", "--iters", "20", "--variants", "lipschitz",
                                                     "--dump", str(dump)], r"lipschitz +"),
     "refine_cameras": (lambda t, run, dump: [*SYNTHETIC, "calibration.rounds=1", "--modes", "pose",
