@@ -180,7 +180,9 @@ def choose_backend(
         f"available on {device}"
     )
     if requested == "auto":
-        log.warning("projector.backend=auto: %s; using the matrix-free backend", figure)
+        log.warning("projector.backend=auto: %s; using the matrix-free backend, whose products march every ray "
+                    "again (150-300x an assembled product's time; its step comes from a 3-product bound): keep its "
+                    "iterations few (a ladder, ladder.rungs, solves coarser levels first)", figure)
         return "matrix_free"
     nx, ny, nz = grid.resolution
     raise MemoryBudgetError(
