@@ -639,7 +639,7 @@ def run(args) -> None:
     check_args(args)
     device = resolve_device(args.device, "--device")
     args.device = device.type
-    set_threads(args.threads)
+    set_threads(args.threads, "--threads")
     machine = {"platform": platform.platform(), "processor": platform.processor(),
                "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                "torch": torch.__version__, "device": str(device),

@@ -13,13 +13,13 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.errors import ConfigError, HullError, MemoryBudgetError
-from flamerecon.fit.memory import available_bytes, format_bytes
 from flamerecon.fit.options import SilhouetteOptions
 from flamerecon.geometry.cameras import K_of, pixel_rays
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.hull import carve_counts
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
+from flamerecon.machine import available_bytes, format_bytes
 from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
 from flamerecon.scenes import Scene, SceneError
 

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import torch
 
+from flamerecon.errors import ConfigError
 from flamerecon.geometry.cameras import make_cameras
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import estimate_bbox, silhouettes
@@ -255,8 +256,10 @@ def choose_box(cfg, file_box, cams, images: torch.Tensor, source) -> tuple[tuple
     if file_box is not None:
         return file_box[0], file_box[1], f"{source}"
     try:
-        masks = silhouettes(images, **silhouette_options(cfg))
+        masks = silhouettes(images, **silhouette_options(cfg), field="scene.silhouette")
         lo, hi = estimate_bbox(cams, masks)
+    except ConfigError:
+        raise
     except ValueError as err:
         raise SceneError(f"{source}: no box in the file or config, and {err}") from None
     return lo, hi, "silhouette cones"
