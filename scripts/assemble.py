@@ -8,6 +8,11 @@ sequence_vti/frame_NNNN.vti, sequence_metrics.csv and sequence_metrics.png (need
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 
 from flamerecon.outputs.sequence import assemble_sweep

@@ -24,6 +24,11 @@ one A^T y against bytes(A) / bandwidth, and a fused A^T (A y - b) in one sweep (
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import hashlib
 import multiprocessing as mp
 import os

@@ -11,6 +11,11 @@ Frames per minute counts everything a user waits for: loading the frame, the rec
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import os
 import time
 

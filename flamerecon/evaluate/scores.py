@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import torch
 
+from flamerecon import interrupt
 from flamerecon.evaluate.metrics import (
     DETAIL_REFERENCE_PX,
     DETAIL_SIGMA_PX,
@@ -131,6 +132,7 @@ def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
     sigma = detail_sigma(scene)
     out = {}
     for k, (img, v) in enumerate(zip(rendered, views)):
+        interrupt.check()
         img, captured = scene.to_recorded(img), scene.recorded_view(v)
         out[scene.views[v]] = {
             "psnr": psnr(img, captured),

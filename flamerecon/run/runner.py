@@ -4,6 +4,9 @@
 - A :class:`~flamerecon.errors.FlameReconError` prints ``flamerecon: error: <message>`` on
   stderr, no traceback (``debug=true`` shows it), and exits with the error's status
   (2 bad input, 3 diverged, 130 interrupted).
+- A stop signal (SIGINT, SIGTERM, SIGHUP): in the solve, the state is checkpointed and
+  ``resume=RUN_DIR`` goes on; anywhere else the run's folder gets a ``FAILED`` saying so (a
+  folder holding nothing but Hydra's entries is removed instead); one line, exit status 130.
 - Every failed run folder gets a ``FAILED`` file with the message (and the traceback of an
   unexpected exception). Under ``--multirun`` a failed job records it and returns, so the other
   jobs still run; :class:`FailureSummary` lists the failures at the end and exits with status 2.
@@ -33,6 +36,7 @@ from flamerecon.errors import (
     RunFolderInUse,
     errno_text,
 )
+from flamerecon.interrupt import EXIT_STATUS, say, signal_name
 from flamerecon.outputs.atomic import atomic_write_text
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
 from flamerecon.run.cli import one_line
@@ -126,8 +130,8 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
     except FlameReconError as err:
         if debug:
             raise
-        print(f"flamerecon: error: {err}", file=sys.stderr)
-        if isinstance(err, Interrupted):
+        say(f"flamerecon: error: {err}")
+        if isinstance(err, Interrupted):  # checkpointed: checkpoint.pt is the record
             raise SystemExit(err.exit_code) from None
         unused = err.exit_code == 2 and not cfg.get("resume") and discard_unused(failed_in)
         if not isinstance(err, RunFolderInUse) and not unused:
@@ -135,12 +139,9 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
         if multirun:
             return None
         raise SystemExit(err.exit_code) from None
-    except KeyboardInterrupt:
-        if debug:
-            raise
-        print("flamerecon: interrupted outside the solve; nothing was checkpointed",
-              file=sys.stderr)
-        raise SystemExit(130) from None
+    except KeyboardInterrupt as stop:  # a stop signal outside the solve (in it: Interrupted)
+        say(f"flamerecon: error: {interrupted(stop, cfg, failed_in)}")
+        raise SystemExit(EXIT_STATUS) from None
     except Exception as err:
         if debug:
             raise
@@ -164,7 +165,24 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
     return flat_metrics(metrics)["heldout_psnr"]
 
 
-def failure_folder(err: Exception, cfg: DictConfig, own: Path) -> Path:
+def interrupted(stop: KeyboardInterrupt, cfg: DictConfig, own: Path) -> str:
+    """The one line for a stop signal outside the solve, after recording it: a folder that holds
+    nothing but Hydra's entries is removed (:func:`discard_unused`), any other gets a ``FAILED``
+    (a checkpoint it holds is kept: ``resume=`` goes on from it)."""
+    folder = failure_folder(stop, cfg, own)
+    signal = signal_name(stop)
+    if not cfg.get("resume") and discard_unused(own):
+        return f"{folder}: interrupted by {signal} before the run wrote anything; its folder was removed"
+    if (folder / CHECKPOINT_FILE).is_file():
+        what = f"its last checkpoint is kept: python train.py resume={folder} goes on from it"
+    else:
+        what = "nothing was checkpointed: run the command again"
+    message = f"{folder}: interrupted by {signal} outside the solve; {what}"
+    record_failure(folder, message)
+    return message
+
+
+def failure_folder(err: BaseException, cfg: DictConfig, own: Path) -> Path:
     """Where a failure is recorded: ``own`` (this command's folder), or with ``resume=`` the
     resumed folder when it still holds its checkpoint (an unfinished run) and the resume was
     not refused: a finished run's folder never gets a ``FAILED``."""
