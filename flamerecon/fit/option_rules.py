@@ -153,6 +153,7 @@ RULES: dict[str, Rule] = {
     "init": Rule(text, null=True),
     "debug": Rule(boolean),
     "resume": Rule(text, null=True),
+    "overwrite": Rule(boolean),
     "grid.resolution": Rule(_resolution),
     "grid.bbox": Rule(_box, null=True),
     "grid.levels": Rule(list_of(_resolution, what="a list of grid sizes (ints or [nx, ny, nz])"),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -16,7 +17,7 @@ import torch
 
 from flamerecon.arguments import fields, instance, tensor, value
 from flamerecon.device import resolve_device
-from flamerecon.errors import ConfigError, RunFolderError
+from flamerecon.errors import ConfigError, RunFolderError, output_error
 from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import native_scores, score, write_renders
 from flamerecon.fit.build import scene_grid, split_views
@@ -24,9 +25,9 @@ from flamerecon.fit.checks import check_density_fits
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Reconstruction, mean_of
 from flamerecon.geometry.grid import VoxelGrid
-from flamerecon.outputs.atomic import update_json_atomic, write_json_atomic
+from flamerecon.outputs.atomic import is_temporary, update_json_atomic, write_json_atomic
 from flamerecon.outputs.cameras_file import camera_records, cameras_from_records
-from flamerecon.outputs.export import load_density, save_density
+from flamerecon.outputs.export import FORMATS, load_density, save_density
 from flamerecon.outputs.figures import top_view
 from flamerecon.rules import integer, list_of
 from flamerecon.run.guard import StopSolve
@@ -36,7 +37,38 @@ from flamerecon.run.tensorboard import RunWriter
 from flamerecon.scenes import Scene, load_scene
 
 CONFIG_FILE = Path(".hydra") / "config.yaml"
-RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "log", "checkpoint", "export", "hydra")
+RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "overwrite", "log", "checkpoint", "export", "hydra")
+#: what a run writes into its folder (besides TensorBoard's ``events.out.tfevents.*`` and the
+#: atomic writers' stale temporaries): what ``overwrite=true`` removes before a new run there
+RUN_ENTRIES = frozenset({
+    ".hydra", "train.log", "density.npz", "cameras.json", "metrics.json", "renders", "checkpoint.pt", "FAILED",
+    "frames", "multirun.yaml", "density.raw.json", *(f"density.{fmt}" for fmt in FORMATS)})
+#: the folders and the log a run writes into (through a symbolic link it would write elsewhere)
+RUN_SUBFOLDERS = (".hydra", "renders", "frames", "train.log")
+EVENTS_PREFIX = "events.out.tfevents."
+
+
+def run_entries(folder: Path) -> list[Path]:
+    """The entries of ``folder`` a run wrote (:data:`RUN_ENTRIES`, TensorBoard's events, stale
+    temporaries of the atomic writers), sorted."""
+    return sorted(p for p in folder.iterdir() if p.name in RUN_ENTRIES or p.name.startswith(EVENTS_PREFIX)
+                  or is_temporary(p))
+
+
+def clear_run(folder: Path) -> list[str]:
+    """Remove the entries of the run in ``folder`` (:func:`run_entries`; a symbolic link is
+    removed, never followed), keeping every other file; returns their names."""
+    removed = []
+    for entry in run_entries(folder):
+        try:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+        except OSError as err:
+            raise output_error(entry, err) from err
+        removed.append(entry.name)
+    return removed
 
 
 def cameras_record(scene: Scene, train: list[int],

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import sys
@@ -70,9 +71,11 @@ def discard_unused(folder: str | Path | None = None) -> bool:
     return removed
 
 
-def record_failure(run_dir: str | Path, message: str) -> Path | None:
-    """Write ``run_dir/FAILED`` with ``message`` (atomically); None where the folder is gone or
-    cannot be written (the one-line error on stderr says why)."""
+def record_failure(run_dir: str | Path | None, message: str) -> Path | None:
+    """Write ``run_dir/FAILED`` with ``message`` (atomically); None where there is no folder,
+    it is gone or cannot be written (the one-line error on stderr says why)."""
+    if run_dir is None:
+        return None
     folder = Path(run_dir)
     if not folder.is_dir():
         return None
@@ -148,6 +151,7 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
         detail = traceback.format_exc()
         folder = failure_folder(err, cfg, failed_in)
         marker = record_failure(folder, f"unexpected {type(err).__name__}: {err}\n\n{detail}")
+        folder = folder or failed_in
         if isinstance(err, OSError) and err.errno:  # a system error outside flamerecon's writers
             where = err.filename if err.filename is not None else folder
             message = f"{where}: {errno_text(err)}; check the path, its permissions and free space"
@@ -173,6 +177,8 @@ def interrupted(stop: KeyboardInterrupt, cfg: DictConfig, own: Path) -> str:
     signal = signal_name(stop)
     if not cfg.get("resume") and discard_unused(own):
         return f"{folder}: interrupted by {signal} before the run wrote anything; its folder was removed"
+    if folder is None:
+        return f"resume={cfg.resume}: interrupted by {signal} before the run resumed; nothing was changed"
     if (folder / CHECKPOINT_FILE).is_file():
         what = f"its last checkpoint is kept: python train.py resume={folder} goes on from it"
     else:
@@ -182,14 +188,18 @@ def interrupted(stop: KeyboardInterrupt, cfg: DictConfig, own: Path) -> str:
     return message
 
 
-def failure_folder(err: BaseException, cfg: DictConfig, own: Path) -> Path:
+def failure_folder(err: BaseException, cfg: DictConfig, own: Path) -> Path | None:
     """Where a failure is recorded: ``own`` (this command's folder), or with ``resume=`` the
     resumed folder when it still holds its checkpoint (an unfinished run) and the resume was
-    not refused: a finished run's folder never gets a ``FAILED``."""
-    if not cfg.get("resume") or isinstance(err, (ResumeError, RunFolderError)):
+    not refused: a finished run's folder never gets a ``FAILED``. None where there is no such
+    folder (a refused resume under the command line runs in the resumed folder, not its own)."""
+    if not cfg.get("resume"):
         return own
-    resumed = Path(str(cfg.resume))
-    return resumed if (resumed / CHECKPOINT_FILE).is_file() else own
+    resumed = Path(str(cfg.resume)).absolute()
+    refused = isinstance(err, (ResumeError, RunFolderError))
+    if not refused and (resumed / CHECKPOINT_FILE).is_file():
+        return resumed
+    return None if own.absolute() == resumed else own
 
 
 def failures(sweep_dir: str | Path) -> list[tuple[Path, str]]:
@@ -206,12 +216,19 @@ class LockRunFolder(Callback):
     Hydra writes ``.hydra/`` into it, so that a second run into a folder in use is refused
     before it changes anything there (exit status 2). The folder's name is resolved once and
     kept (``${now:...}`` would otherwise be read again), and the folders it makes are recorded
-    for :func:`discard_unused`."""
+    for :func:`discard_unused`.
+
+    A folder that holds a previous run (or anything else) is refused too, unless
+    ``overwrite=true`` (the previous run's files are removed first, other files stay): a
+    finished run is never replaced without a word. With ``resume=RUN_DIR`` the command runs
+    in RUN_DIR itself (no folder of its own, no ``.hydra/`` written over the run's), its lock
+    taken there. A ``renders/``, ``frames/``, ``.hydra/`` or ``train.log`` that is a symbolic
+    link is refused: writes stay inside the run folder."""
 
     def __init__(self) -> None:
         self.held = None
 
-    def _take(self, config: DictConfig, key: str) -> None:
+    def _take(self, config: DictConfig, key: str) -> Path:
         from omegaconf import OmegaConf, open_dict, read_write
 
         from flamerecon.run.lock import acquire
@@ -224,10 +241,10 @@ class LockRunFolder(Callback):
         try:
             self.held = acquire(folder)
         except FlameReconError as err:
-            print(f"flamerecon: error: {err}", file=sys.stderr)
-            raise SystemExit(err.exit_code) from None
+            refuse(str(err), err.exit_code)
         if missing:
             _MADE[path] = missing[-1]
+        return path
 
     def _give_back(self) -> None:
         from flamerecon.run.lock import release
@@ -236,17 +253,85 @@ class LockRunFolder(Callback):
             release(self.held)
             self.held = None
 
+    def _refuse_a_previous_run(self, config: DictConfig, folder: Path, what: str) -> None:
+        """Refuse ``folder`` when it holds anything but its lock, unless ``overwrite=true``
+        (then the run's files go, :func:`~flamerecon.run.folder.clear_run`)."""
+        import logging
+
+        from flamerecon.run.folder import clear_run, run_entries
+        from flamerecon.run.lock import LOCK_FILE
+
+        held = sorted(p.name for p in folder.iterdir() if p.name != LOCK_FILE)
+        if not held:
+            return
+        if config.get("overwrite") is True:
+            if what == "sweep":
+                jobs = [p for p in folder.iterdir() if p.is_dir() and not p.is_symlink() and (p / ".hydra").is_dir()]
+                for job in jobs:
+                    clear_run(job)
+                    with contextlib.suppress(OSError):
+                        job.rmdir()
+            removed = clear_run(folder)
+            logging.getLogger(__name__).warning("overwrite=true: removed the previous %s's %s from %s", what,
+                                                ", ".join(removed) or "job folders", folder)
+            return
+        self._give_back()
+        shown = ", ".join(held[:4]) + (", ..." if len(held) > 4 else "")
+        key = "hydra.sweep.dir" if what == "sweep" else "hydra.run.dir"
+        if run_entries(folder):
+            again = (f"continue it with resume={folder}, " if (folder / CHECKPOINT_FILE).is_file() else "")
+            refuse(f"{folder}: holds a previous {what} ({shown}); flamerecon does not write over it: write into a "
+                   f"new folder ({key}=...), {again}or replace it with overwrite=true")
+        refuse(f"{folder}: is not empty ({shown}); write the {what} into a new or empty folder ({key}=...), or "
+               "add overwrite=true to write it there anyway (other files are left as they are)")
+
+    @staticmethod
+    def _no_links(folder: Path) -> None:
+        from flamerecon.run.folder import RUN_SUBFOLDERS
+
+        for name in RUN_SUBFOLDERS:
+            if (folder / name).is_symlink():
+                refuse(f"{folder / name}: is a symbolic link (to {os.readlink(folder / name)}); flamerecon "
+                       "writes only inside the run folder: remove the link, or write the run into another folder")
+
+    @staticmethod
+    def _resume_here(config: DictConfig) -> None:
+        """``hydra.run.dir`` set to the folder ``resume=`` names, and no ``.hydra/`` written
+        (the run's own config stays); a folder that is no run folder is refused first."""
+        from omegaconf import open_dict, read_write
+
+        from flamerecon.run.folder import CONFIG_FILE
+
+        folder = Path(os.path.expanduser(str(config.resume))).absolute()
+        if not (folder / CONFIG_FILE).is_file():
+            refuse(f"resume={config.resume}: {folder / CONFIG_FILE} not found; is {folder} a flamerecon run folder?")
+        with read_write(config), open_dict(config):
+            config.hydra.run.dir = str(folder)
+            config.hydra.output_subdir = None
+
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._take(config, "hydra.run.dir")
+        resume = bool(config.get("resume"))
+        if resume:
+            self._resume_here(config)
+        folder = self._take(config, "hydra.run.dir")
+        if not resume:
+            self._refuse_a_previous_run(config, folder, "run")
+        self._no_links(folder)
 
     def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
         self._give_back()
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._take(config, "hydra.sweep.dir")
+        folder = self._take(config, "hydra.sweep.dir")
+        self._refuse_a_previous_run(config, folder, "sweep")
 
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        self._give_back()
+
+def refuse(message: str, status: int = 2) -> None:
+    """End the command before any work with ``flamerecon: error: message``, leaving no folder
+    it made (:func:`discard_unused`)."""
+    discard_unused()
+    say(f"flamerecon: error: {message}")
+    raise SystemExit(status)
 
 
 class FailureSummary(Callback):
