@@ -199,8 +199,10 @@ class Reconstruction:
         photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
         metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
                            self.setup.step, self.options.silhouette.as_dict(), photometry)
-        metrics["warnings"] = result_warnings(self.scene, self.density, metrics, self.setup.train + self.setup.holdout,
-                                              *penalty_of(self.options.solver.as_dict(), self.fit.l1))
+        metrics["warnings"] = result_warnings(
+            self.scene, self.density, {**metrics, "calibration": self.calibration}, self.setup.train + self.setup.holdout,
+            *penalty_of(self.options.solver.as_dict(), self.fit.l1), train=self.setup.train, step=self.setup.step,
+            bbox=(self.grid.bbox_min, self.grid.bbox_max))
         return metrics
 
 

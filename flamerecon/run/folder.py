@@ -101,7 +101,8 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
             metrics["resolution"]["native"] = list(size)
     if calibration:
         metrics["calibration"] = {**calibration, "train_psnr_after": mean_of(metrics["train"], "psnr")}
-    metrics["warnings"] = result_warnings(scene, volume, metrics, train + holdout, *penalty)
+    metrics["warnings"] = result_warnings(scene, volume, metrics, train + holdout, *penalty, train=train, step=step,
+                                          bbox=(grid.bbox_min, grid.bbox_max))
     return metrics, held_imgs
 
 
