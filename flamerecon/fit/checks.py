@@ -90,10 +90,11 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
     seen = sees_box(cams, grid)
     for i in (~seen).nonzero().flatten().tolist():
         lo, hi = [round(v, 4) for v in grid.bbox_min], [round(v, 4) for v in grid.bbox_max]
-        raise SceneError(
-            f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; "
-            "check its world_to_camera (pose, axis convention) or set grid.bbox"
-        )
+        cx, cy = float(K[i, 0, 2]), float(K[i, 1, 2])
+        fix = ("check its world_to_camera (pose, axis convention) or set grid.bbox" if 0 <= cx <= W and 0 <= cy <= H
+               else f"its principal point ({cx:.1f}, {cy:.1f}) px lies outside the {W}x{H} image: check K's cx, cy "
+               "first (pixels of this image), then its pose")
+        raise SceneError(f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; {fix}")
 
 
 def density_fault(density: np.ndarray | torch.Tensor, diagonal: float) -> str | None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import re
 import signal
 import subprocess
 import tempfile
@@ -175,12 +176,43 @@ def run_script(body: Callable[[], int | None], debug: bool = False) -> int:
         finish()
 
 
+def config_problem(err: BaseException) -> str | None:
+    """One line for a config that Hydra or OmegaConf could not read, None for another error: a
+    file that is not plain YAML (a Python tag, broken syntax: named with its line), an
+    interpolation that does not resolve (``${oc.env:VAR}`` without VAR set, ``${a.key}`` that
+    is not there: named by the key that holds it)."""
+    import yaml
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(err, yaml.YAMLError):
+        mark = getattr(err, "problem_mark", None)
+        where = f"{mark.name}:{mark.line + 1}" if mark is not None else "a config file"
+        problem = " ".join(str(getattr(err, "problem", None) or err).split())
+        return (f"{where}: not plain YAML ({problem}); a config file holds plain values, no Python tags (nothing in "
+                "it was run)")
+    if not isinstance(err, OmegaConfBaseException):
+        return None
+    key = getattr(err, "full_key", None) or "config"
+    text = one_line(err)
+    env = re.search(r"Environment variable '([^']+)' not found", text)
+    if env:
+        return (f"{key}: ${{oc.env:{env[1]}}}: the environment variable {env[1]} is not set; set it (export "
+                f"{env[1]}=...), give the interpolation a default (${{oc.env:{env[1]},DEFAULT}}) or give {key}=...")
+    missing = re.search(r"Interpolation key '([^']+)' not found", text)
+    if missing:
+        return f"{key}: refers to ${{{missing[1]}}}, which is not in the config; give {key}=... a value"
+    return f"{key}: {text.split('    full_key')[0].strip()}; give {key}=... a plain value"
+
+
 def describe(err: Exception) -> tuple[str, int]:
     """(one-line message, exit status) for an exception that ends a script."""
     from hydra.errors import HydraException
 
     if isinstance(err, FlameReconError):
         return one_line(err), err.exit_code
+    problem = config_problem(err)
+    if problem is not None:
+        return problem, 2
     if isinstance(err, HydraException):
         return f"config: {one_line(err)}", 2
     if isinstance(err, OSError) and err.errno:

@@ -30,6 +30,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from flamerecon.errors import (
+    ConfigError,
     FlameReconError,
     Interrupted,
     ResumeError,
@@ -40,9 +41,9 @@ from flamerecon.errors import (
 from flamerecon.interrupt import EXIT_STATUS, say, signal_name
 from flamerecon.outputs.atomic import atomic_write_text
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
-from flamerecon.run.cli import one_line
+from flamerecon.run.cli import config_problem, one_line
+from flamerecon.run.folder import FAILED_FILE
 
-FAILED_FILE = "FAILED"
 #: what Hydra (and the lock) put into a run or sweep folder before the run does any work
 HYDRA_ENTRIES = frozenset({".hydra", "train.log", "multirun.yaml", ".lock"})
 #: run and sweep folders this process made (:class:`LockRunFolder`) -> the topmost folder made
@@ -114,10 +115,12 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
     from flamerecon.run.pipeline import flat_metrics, reconstruct, run_config, summary_table
     from flamerecon.run.resume import resume_config
 
-    debug = bool(cfg.get("debug", False))
     start = Path.cwd() if cwd is None else Path(cwd)
     failed_in = Path(run_dir)
+    debug = False
     try:
+        resolves(cfg)
+        debug = cfg.get("debug", False) is True  # debug=yes is refused by its rule, without a traceback
         if cfg.get("resume"):
             resumed = Path(str(cfg.resume))
             if not resumed.is_absolute():
@@ -186,6 +189,17 @@ def interrupted(stop: KeyboardInterrupt, cfg: DictConfig, own: Path) -> str:
     message = f"{folder}: interrupted by {signal} outside the solve; {what}"
     record_failure(folder, message)
     return message
+
+
+def resolves(cfg: DictConfig) -> None:
+    """A :class:`~flamerecon.errors.ConfigError` for an interpolation of ``cfg`` that does not
+    resolve (:func:`~flamerecon.run.cli.config_problem`), before any work."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as err:
+        raise ConfigError(config_problem(err)) from None
 
 
 def failure_folder(err: BaseException, cfg: DictConfig, own: Path) -> Path | None:

@@ -24,12 +24,14 @@ def task(cfg: DictConfig) -> float | None:
     """One Hydra job: the run layer in its run folder (returns the held-out PSNR for sweeps)."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
+    from omegaconf import OmegaConf
 
     from flamerecon.run.runner import run_task
 
     hc = HydraConfig.get()
+    overrides = OmegaConf.to_container(hc.overrides.task, resolve=False)  # as typed: ${...} kept
     return run_task(cfg, hc.runtime.output_dir, multirun=hc.mode == RunMode.MULTIRUN,
-                    cwd=hc.runtime.cwd, overrides=list(hc.overrides.task))
+                    cwd=hc.runtime.cwd, overrides=overrides)
 
 
 def save_config(cfg: DictConfig, filename: str, output_dir: Path) -> None:
@@ -71,7 +73,10 @@ def main() -> None:
     install()
     from hydra._internal.utils import get_args_parser
     from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+    from yaml import YAMLError
 
+    from flamerecon.run.cli import config_problem
     from flamerecon.run.command_line import refusal
     from flamerecon.run.runner import discard_unused
 
@@ -85,6 +90,12 @@ def main() -> None:
         discard_unused()
         overrides = get_args_parser().parse_known_args()[0].overrides
         print(f"flamerecon: error: {refusal(err, overrides)}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except (YAMLError, OmegaConfBaseException) as err:  # a config file or interpolation Hydra could not read
+        if own:
+            raise
+        discard_unused()
+        print(f"flamerecon: error: {config_problem(err)}", file=sys.stderr)
         raise SystemExit(2) from None
     except KeyboardInterrupt as stop:
         discard_unused()

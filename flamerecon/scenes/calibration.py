@@ -7,7 +7,6 @@ Every check raises :class:`SceneError` with one line that names the file and the
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from flamerecon.errors import ConfigError
 from flamerecon.geometry.cameras import make_cameras
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import estimate_bbox, silhouettes
+from flamerecon.plain import json_value
 from flamerecon.resources import checkout_root
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.frames import is_link_loop
@@ -67,9 +67,8 @@ def read_json_object(root: Path, file_name: str, expected: str) -> tuple[dict, P
     if not path.is_file():
         raise SceneError(f"{path}: {file_name} not found")
     try:
-        with open(path) as f:
-            data = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        data = json_value(path.read_text())
+    except (ValueError, OSError) as err:
         raise SceneError(f"{path}: not valid JSON ({err})") from None
     if not isinstance(data, dict):
         raise SceneError(f"{path}: top level must be an object with {expected}")
