@@ -6,6 +6,7 @@ and the divergence guard (:mod:`flamerecon.run.hook`), the default one just solv
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -182,9 +183,11 @@ class Reconstruction:
     def grid(self) -> VoxelGrid:
         return self.setup.grid
 
-    @property
+    @functools.cached_property
     def density(self) -> torch.Tensor:
-        """(C, nz, ny, nx) emission density on :attr:`grid`."""
+        """(C, nz, ny, nx) emission density on :attr:`grid`: one tensor, made on first use, so
+        that an edit in place (a scale, a mask, a clamp) is what :meth:`score`, ``fr.score``,
+        ``fr.export`` and ``fr.render`` of it see."""
         return self.setup.volume(self.fit.result.x)
 
     @property
