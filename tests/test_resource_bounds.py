@@ -148,3 +148,10 @@ def test_the_command_line_refuses_threads_past_the_cores(tmp_path, capsys):
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("flamerecon: error: threads: got 1000000; threads must be at most") and "Traceback" not in err
+
+
+def test_the_camera_fits_own_grid_is_refused_naming_its_option(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        run_task(tiny_cfg("calibration.refine=pose", "calibration.resolution=100000"), tmp_path / "run")
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.startswith("flamerecon: error: calibration.resolution: a 66667x100000x66667 grid")

@@ -300,6 +300,17 @@ def test_a_multirun_stops_at_the_job_it_was_in(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.e2e
+def test_a_multirun_interrupted_while_it_starts_a_job_keeps_the_jobs_before(tmp_path):
+    sweep = tmp_path / "sweep"
+    done = signalled("SIGINT", "call:hydra.core.utils:run_job:2", "train.py", "--multirun", *TINY_RUN,
+                     "seed=0,1", f"hydra.sweep.dir={sweep}")
+    assert_one_line_130(done, r"interrupted by SIGINT outside a run's work \(starting, or between a sweep's jobs\)")
+    assert (sweep / "0" / "metrics.json").is_file() and not (sweep / "1").exists()
+    assert not list(sweep.rglob(".lock"))
+
+
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_the_flamerecon_command_installs_them_from_its_first_line(tmp_path):
     command = shutil.which("flamerecon", path=str(Path(sys.executable).parent))
     assert command is not None, "the console script of the editable install"

@@ -139,15 +139,17 @@ def memory_budget(device: torch.device, max_memory_gb: float | None) -> int | No
     return None if free is None else int(MEMORY_HEADROOM * free)
 
 
-def check_grid_memory(grid: VoxelGrid, n_views: int, device: torch.device, budget: int | None) -> None:
-    """Refuse a grid whose dense arrays alone would not fit in ``budget`` bytes."""
+def check_grid_memory(grid: VoxelGrid, n_views: int, device: torch.device, budget: int | None,
+                      field: str = "grid.resolution") -> None:
+    """Refuse a grid whose dense arrays alone would not fit in ``budget`` bytes (the option
+    that sized it: ``field``)."""
     need = grid.num_voxels * (DENSE_BYTES_PER_VOXEL + n_views)
     if budget is not None and need > budget:
         nx, ny, nz = grid.resolution
         raise MemoryBudgetError(
-            f"grid.resolution: a {nx}x{ny}x{nz} grid ({grid.num_voxels:.3g} voxels) needs about "
+            f"{field}: a {nx}x{ny}x{nz} grid ({grid.num_voxels:.3g} voxels) needs about "
             f"{format_bytes(need)} for its dense arrays but {format_bytes(budget)} is available on "
-            f"{device}; use a smaller grid.resolution"
+            f"{device}; use a smaller {field}"
         )
 
 

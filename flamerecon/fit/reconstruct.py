@@ -36,7 +36,7 @@ from flamerecon.fit.build import (
     split_views,
 )
 from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
-from flamerecon.fit.checks import density_fault
+from flamerecon.fit.checks import check_grid_memory, density_fault, memory_budget
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import level_grids, level_iters
 from flamerecon.fit.options import ReconstructionOptions
@@ -429,6 +429,9 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
                         meta={k: v for k, v in scene.meta.items() if k != "calibrated_cameras"})
     train, holdout = split_views(scene, options)
     grid = scene_grid(replace(options.grid, resolution=refining.resolution or options.grid.resolution), scene)
+    if refining.resolution:  # its own grid: refused naming its own option
+        check_grid_memory(grid, len(scene.views), device, memory_budget(device, options.projector.max_memory_gb),
+                          "calibration.resolution")
     step = float(options.projector.step)
     # the densities the cameras are fitted to: an unpenalised refit would fit part of the
     # cameras' errors into them (held-out train02, ScalarFlow frame 35: 31.84 dB against 33.23
