@@ -5,22 +5,13 @@ no graph when none is asked for; ``fr.load_run`` refuses a run that failed unles
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import pytest
 import torch
 
 import flamerecon as fr
 from flamerecon.errors import RunFolderError
-
-
-@functools.lru_cache(maxsize=1)
-def reconstruction():
-    scene = fr.load_scene({"name": "synthetic", "width": 24, "height": 18, "n_cameras": 3, "phantom_resolution": 16})
-    options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device="cpu",
-                                       solver=fr.SolverOptions(params={"max_iters": 5}))
-    return fr.reconstruct(scene, options)
+from tests.helpers import tiny_reconstruction
 
 
 def _scaled(density):
@@ -40,7 +31,7 @@ EDITS = {"scaled by 2": _scaled, "half masked out": _masked, "clamped to a quart
 
 @pytest.mark.parametrize("edit", list(EDITS))
 def test_an_edit_in_place_reaches_score_export_and_render(edit, tmp_path):
-    rec = reconstruction()
+    rec = tiny_reconstruction()
     before = rec.density.clone()
     try:
         assert rec.density is rec.density  # one tensor, not a new one each time

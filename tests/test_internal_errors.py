@@ -8,7 +8,6 @@ override. One table of cases over the library; the command line's own cases afte
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import os
@@ -40,7 +39,7 @@ from flamerecon.run.command_line import refusal
 from flamerecon.run.runner import run_task
 from flamerecon.scenes import SceneError, load_scene
 from flamerecon.scenes.frames import frame_source, openexr_missing, read_image
-from tests.helpers import FAST, REPO, TINY, repo_env, tiny_cfg, tiny_synthetic
+from tests.helpers import FAST, REPO, TINY, repo_env, tiny_cfg, tiny_reconstruction, tiny_synthetic
 
 ERROR = "flamerecon: error: "
 
@@ -105,15 +104,6 @@ def _principal_point_far_off(tmp_path):
     K4[1, 0, 2] = 40 * 48.0  # cx 40 images to the right: the camera sees nothing of the box
     check_scene(replace(scene, cameras=type(cams)(K4, cams.extrinsics, cams.height, cams.width)),
                 scene.truth_grid)
-
-
-@functools.lru_cache(maxsize=1)
-def tiny_reconstruction():
-    """A reconstruction of the tiny scene (seconds), shared by the export cases."""
-    scene = fr.load_scene({"name": "synthetic", "width": 24, "height": 18, "n_cameras": 3, "phantom_resolution": 16})
-    options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device="cpu",
-                                       solver=fr.SolverOptions(params={"max_iters": 5}))
-    return fr.reconstruct(scene, options)
 
 
 # case: (what to do, error type, the message's pattern)

@@ -183,17 +183,23 @@ def test_a_signal_at_each_stage_of_a_run(stage, handlers, tmp_path, capsys, monk
         assert (run / FAILED_FILE).read_text().strip() == lines[0][len(ERROR):]
 
 
-def test_a_solve_stopped_between_checks_resumes_to_the_uninterrupted_result(handlers, tmp_path, capsys,
-                                                                           monkeypatch):
-    whole, run = tmp_path / "whole", tmp_path / "run"
-    run_task(tiny_cfg(*SOLVE), whole)
+def stopped_run(monkeypatch, run: Path, send) -> None:
+    """The tiny solve run into ``run``, stopped by ``send`` (a stage of :data:`STAGES`) with a
+    SIGTERM, its config saved as Hydra saves it (``resume=`` reads it)."""
     cfg = tiny_cfg(*SOLVE)
     with monkeypatch.context() as patch:
-        _solve_between_checks(patch, signal.SIGTERM)
+        send(patch, signal.SIGTERM)
         with pytest.raises(SystemExit):
             run_task(cfg, run)
     (run / ".hydra").mkdir()
     OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
+
+
+def test_a_solve_stopped_between_checks_resumes_to_the_uninterrupted_result(handlers, tmp_path, capsys,
+                                                                           monkeypatch):
+    whole, run = tmp_path / "whole", tmp_path / "run"
+    run_task(tiny_cfg(*SOLVE), whole)
+    stopped_run(monkeypatch, run, _solve_between_checks)
     run_task(tiny_cfg(*SOLVE, f"resume={run}"), tmp_path / "resume-command")
     with np.load(whole / "density.npz") as a, np.load(run / "density.npz") as b:
         np.testing.assert_array_equal(a["density"], b["density"])
@@ -204,13 +210,8 @@ def test_a_signal_while_resuming_marks_the_resumed_run_and_a_later_resume_clears
                                                                                   monkeypatch):
     from flamerecon.run import hook
 
-    run, cfg = tmp_path / "run", tiny_cfg(*SOLVE)
-    with monkeypatch.context() as patch:
-        _solve_at_a_check(patch, signal.SIGTERM)
-        with pytest.raises(SystemExit):
-            run_task(cfg, run)
-    (run / ".hydra").mkdir()
-    OmegaConf.save(cfg, run / ".hydra" / "config.yaml")
+    run = tmp_path / "run"
+    stopped_run(monkeypatch, run, _solve_at_a_check)
     with monkeypatch.context() as patch:
         signal_on_call(patch, hook, "resume_solver", signal.SIGHUP)
         with pytest.raises(SystemExit) as stop:
