@@ -36,11 +36,12 @@ STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SI
 
 
 class Stopped(KeyboardInterrupt):
-    """A stop signal acted on; :attr:`signal` names it (``'SIGTERM'``)."""
+    """A stop signal acted on; :attr:`signal` names it (``'SIGTERM'``); :attr:`forced`: a second
+    signal inside a solve, which wants the process to stop at once (no checkpoint)."""
 
-    def __init__(self, name: str = "SIGINT") -> None:
+    def __init__(self, name: str = "SIGINT", forced: bool = False) -> None:
         super().__init__(f"{name} received")
-        self.signal = name
+        self.signal, self.forced = name, forced
 
 
 _received: str | None = None  # the first stop signal received and not yet acted on
@@ -59,8 +60,9 @@ def _handle(signum: int, _frame) -> None:
     if _received is None and _deferring:
         _received = name  # the solve's guard checkpoints at its next check, or check() raises
         return
+    forced = _received is not None
     _received = None
-    raise Stopped(name)
+    raise Stopped(name, forced)
 
 
 def received() -> str | None:

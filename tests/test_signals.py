@@ -58,11 +58,11 @@ def test_a_signal_outside_a_solve_raises_at_once_naming_itself(handlers):
 
 
 def test_inside_a_solve_the_first_signal_waits_for_check_and_a_second_raises_at_once(handlers):
-    with pytest.raises(handlers.Stopped, match="SIGHUP"), handlers.deferred():
+    with pytest.raises(handlers.Stopped, match="SIGHUP") as second, handlers.deferred():
         os.kill(os.getpid(), signal.SIGTERM)
         assert handlers.received() == "SIGTERM"  # recorded, not raised
         os.kill(os.getpid(), signal.SIGHUP)
-    assert handlers.received() is None
+    assert second.value.forced and handlers.received() is None
     with pytest.raises(handlers.Stopped, match="SIGTERM"), handlers.deferred():
         os.kill(os.getpid(), signal.SIGTERM)
         handlers.check()
@@ -140,6 +140,10 @@ def _solve_between_checks(monkeypatch, sig):
     signal_in_loop(monkeypatch, "_run", sig, nth=25)
 
 
+def _twice_in_the_solve(monkeypatch, sig):
+    signal_in_loop(monkeypatch, "_run", sig, nth=25, times=2)  # the second stops at once, no checkpoint
+
+
 def _scoring(monkeypatch, sig):
     signal_in_loop(monkeypatch, "score_views", sig)
 
@@ -159,6 +163,8 @@ STAGES = {
                               r"SIGTERM received at iteration 30; the state is saved in checkpoint.pt; continue"),
     "the solve, between checks": ([], _solve_between_checks, signal.SIGHUP, True,
                                   r"SIGHUP received at iteration 20; the state is saved"),
+    "the solve, a second signal": ([], _twice_in_the_solve, signal.SIGINT, False,
+                                   r"stopped at once by a second SIGINT; nothing was checkpointed"),
     "the scoring": ([], _scoring, signal.SIGTERM, False, r"interrupted by SIGTERM outside the solve; nothing"),
     "writing the outputs": ([], _outputs, signal.SIGINT, False, r"interrupted by SIGINT outside the solve"),
 }

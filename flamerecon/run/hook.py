@@ -193,6 +193,8 @@ class RunHook(SolveHook):
                     try:
                         result = solver.solve(problem, x0=x0, callback=guard)
                     except interrupt.Stopped as stop:  # raised between chunks, away from a check
+                        if stop.forced:  # a second signal: at once, no checkpoint
+                            raise
                         guard.stop_here(*guard.last_good, stop.signal)
                     if interrupt.received():  # after the last check
                         guard.stop_here(result.iterations, result.x, interrupt.received())

@@ -173,7 +173,8 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
 
 
 def interrupted(stop: KeyboardInterrupt, cfg: DictConfig, own: Path) -> str:
-    """The one line for a stop signal outside the solve, after recording it: a folder that holds
+    """The one line for a stop signal outside the solve (or a second one in it, which stops at
+    once), after recording it: a folder that holds
     nothing but Hydra's entries is removed (:func:`discard_unused`), any other gets a ``FAILED``
     (a checkpoint it holds is kept: ``resume=`` goes on from it)."""
     folder = failure_folder(stop, cfg, own)
@@ -186,7 +187,9 @@ def interrupted(stop: KeyboardInterrupt, cfg: DictConfig, own: Path) -> str:
         what = f"its last checkpoint is kept: python train.py resume={folder} goes on from it"
     else:
         what = "nothing was checkpointed: run the command again"
-    message = f"{folder}: interrupted by {signal} outside the solve; {what}"
+    how = f"stopped at once by a second {signal}" if getattr(stop, "forced", False) else \
+        f"interrupted by {signal} outside the solve"
+    message = f"{folder}: {how}; {what}"
     record_failure(folder, message)
     return message
 

@@ -58,9 +58,10 @@ def signal_on_call(monkeypatch, owner, name: str, sig: int = signal.SIGTERM, nth
     monkeypatch.setattr(owner, name, wrapper)
 
 
-def signal_in_loop(monkeypatch, function: str, sig: int = signal.SIGTERM, nth: int = 1) -> None:
-    """Send this process ``sig`` at the ``nth`` call of :func:`flamerecon.interrupt.check` from
-    the function named ``function`` (a long loop between its chunks)."""
+def signal_in_loop(monkeypatch, function: str, sig: int = signal.SIGTERM, nth: int = 1, times: int = 1) -> None:
+    """Send this process ``sig`` (``times`` times in a row) at the ``nth`` call of
+    :func:`flamerecon.interrupt.check` from the function named ``function`` (a long loop
+    between its chunks)."""
     import sys
 
     from flamerecon import interrupt
@@ -71,7 +72,8 @@ def signal_in_loop(monkeypatch, function: str, sig: int = signal.SIGTERM, nth: i
         if sys._getframe(1).f_code.co_name == function:
             calls[0] += 1
             if calls[0] == nth:
-                os.kill(os.getpid(), sig)
+                for _ in range(times):
+                    os.kill(os.getpid(), sig)
         return original()
 
     monkeypatch.setattr(interrupt, "check", check)
