@@ -105,5 +105,6 @@ def torch_reason(err: Exception, what: str) -> str:
     if "weights_only" in text:
         found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
         kind = "a " + found.group(1) if found else "Python objects"
-        return f"it holds {kind}, not only tensors; not a flamerecon {what} (never load it with weights_only=False)"
+        return (f"it holds {kind}, not only tensors; not a flamerecon {what} (never load it unsafely: that would "
+                "run the code it holds)")
     return " ".join(text.split())
