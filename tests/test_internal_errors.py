@@ -222,6 +222,8 @@ def test_a_bad_config_value_is_one_line(override, tmp_path, capsys):
     assert code == 2 and re.search(COMMAND_LINE[override], line), line
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_a_runs_cameras_json_missing_a_camera(tmp_path, capsys):
     from tests.test_bad_input import script
 

@@ -169,6 +169,8 @@ def test_writers_refuse_a_linked_subfolder(tmp_path):
     assert make_subfolder(tmp_path / "run", "new").is_dir() and not list(elsewhere.iterdir())
 
 
+@pytest.mark.slow
+@pytest.mark.e2e
 def test_evaluate_never_writes_through_a_linked_renders_folder(tmp_path, capsys):
     from tests.test_bad_input import script
 
