@@ -8,6 +8,9 @@ import sys
 
 
 def main() -> None:
+    from flamerecon.interrupt import install
+
+    install()  # first: a stop signal from here on ends in one line, exit status 130
     if len(sys.argv) > 1 and sys.argv[1] == "view":
         from flamerecon.viewer.command import main as view
 

@@ -22,7 +22,8 @@ from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
-from flamerecon.operators.projector import render_image
+from flamerecon.operators.projector import camera_rays, integrate_dense, render_image
+from flamerecon.outputs.atomic import make_folder
 from flamerecon.outputs.export import ALIASES, FORMATS, Density, export_density, load_density
 from flamerecon.outputs.figures import _angles, orbit_cameras, write_png
 from flamerecon.outputs.mesh import DEFAULT_ISO
@@ -95,7 +96,10 @@ def render(volume: torch.Tensor, grid: VoxelGrid, cameras: PinholeCamera, step: 
     """Emission-only renders of a density (C, nz, ny, nx) on ``grid`` through kornia
     ``cameras`` (B of them, one size; :func:`flamerecon.look_at_camera`,
     :func:`flamerecon.orbit_cameras` or a scene's): (B, C, H, W) float32 line integrals on the density's
-    device, ``step`` in voxels (>= 0.01, as ``projector.step``)."""
+    device, ``step`` in voxels (>= 0.01, as ``projector.step``).
+
+    Differentiable: for a ``volume`` that requires grad (and grad enabled) the renders keep the
+    autograd graph, every pixel marched (a zero voxel's gradient counts too); otherwise only the pixels the nonzero density projects onto are marched."""
     instance("render.grid", grid, VoxelGrid)
     volume = tensor("render.volume", volume, "(C, nz, ny, nx) on the grid", shape=(None, *grid.shape), finite=True)
     instance("render.cameras", cameras, PinholeCamera, "a kornia PinholeCamera batch")
@@ -103,7 +107,13 @@ def render(volume: torch.Tensor, grid: VoxelGrid, cameras: PinholeCamera, step: 
     if len(sizes) != 1:
         raise wrong_value("render.cameras", sorted(sizes), "a batch of at least one camera, all of one image size")
     value("render.step", step, RULES["projector.step"].check)
-    return render_image(volume.float(), grid, cameras_to(cameras, volume.device), float(step))
+    cams = cameras_to(cameras, volume.device)
+    if volume.requires_grad and torch.is_grad_enabled():
+        (H, W), = sizes
+        rays, _ = camera_rays(cams)
+        pixels = integrate_dense(volume.float(), grid, rays, float(step))  # (B H W, C)
+        return pixels.T.reshape(volume.shape[0], cams.batch_size, H, W).transpose(0, 1)
+    return render_image(volume.float(), grid, cams, float(step))
 
 
 def score(result: Reconstruction | Run) -> dict:
@@ -134,6 +144,9 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
     instance("export.result", result, (Reconstruction, Run, str, os.PathLike),
              "a Reconstruction, a Run, or a run folder or density.npz")
     instance("export.stem", stem, (str, os.PathLike), "a path without suffix")
+    if not Path(stem).name or "\0" in str(stem) or Path(stem).is_dir():
+        raise wrong_value("export.stem", stem, "a file path without suffix (e.g. 'out/flame'), not empty, not a folder, "
+                          "without NUL characters")
     value("export.iso", iso, RULES["export.iso"].check)
     names = [formats] if isinstance(formats, str) else formats
     instance("export.formats", names, Iterable, "a format name or a list of them")
@@ -151,7 +164,9 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
         grid = result.grid
         volume = Density(result.density.detach().cpu().numpy().astype(np.float32), np.array(grid.bbox_min),
                          np.array(grid.bbox_max), [result.scene.views[v] for v in views])
-    Path(stem).parent.mkdir(parents=True, exist_ok=True)
+    if Path(stem).parent.exists() and not Path(stem).parent.is_dir():
+        raise wrong_value("export.stem", stem, f"a path in a folder ({Path(stem).parent} is a file)")
+    make_folder(Path(stem).parent)
     return export_density(volume, stem, formats, iso)
 
 

@@ -11,6 +11,11 @@ sequence_metrics.png (needs matplotlib); a sweep over other settings is only com
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 
 from flamerecon.outputs.sequence import assemble_sweep

@@ -12,6 +12,11 @@ low IoU, its cyan outline beside its green silhouette. Exit status 0; problems a
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first: a stop signal from here on ends in one line, exit status 130
+
 import sys
 import time
 from pathlib import Path

@@ -15,6 +15,11 @@ Check the result with scripts/check_capture.py scene=opencv scene.root=OUT (docs
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first: a stop signal from here on ends in one line, exit status 130
+
 import sys
 from pathlib import Path
 

@@ -12,6 +12,11 @@ each PSNR beside that of an all-black image (the floor).
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 from pathlib import Path
 

@@ -10,6 +10,11 @@ density.obj.
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 
 from flamerecon.outputs.export import ALIASES, FORMATS, export_run

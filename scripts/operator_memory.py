@@ -12,6 +12,11 @@ silhouettes' rays by a few pixels, not the operator's size.
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first: a stop signal from here on ends in one line, exit status 130
+
 import os
 import threading
 import time

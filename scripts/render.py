@@ -15,6 +15,11 @@ Nothing asked for means --figures.
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import argparse
 import json
 import sys

@@ -1,6 +1,7 @@
 """The resolution ladder of a capture, measured: one `python train.py` run per rung (its own
-process, as a user runs it), each timed (wall) with its peak resident memory (the process's own,
-from the kernel), then its density scored the same way for every rung: the held-out view
+process, as a user runs it), each timed (wall) with its peak resident memory (the run's own
+metrics.json `memory`, the kernel's ru_maxrss: what `/usr/bin/time -v` prints), then its density
+scored the same way for every rung: the held-out view
 rendered at one resolution (--score-downscale, default 2: half resolution), full frame, and on
 ScalarFlow also HyFluid's crop (flamerecon/evaluate/protocols.py).
 
@@ -16,17 +17,21 @@ temporary folder, removed at the end).
 
 from __future__ import annotations
 
-import json
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first: a stop signal from here on ends in one line, exit status 130
+
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from flamerecon.errors import FlameReconError
 from flamerecon.evaluate.protocols import PROTOCOLS, Protocol, protocol_scores
 from flamerecon.outputs.atomic import write_json_atomic
-from flamerecon.run.cli import at_least, output_file, run_script, script_parser
+from flamerecon.run.cli import at_least, output_file, run_child, run_script, script_parser
 from flamerecon.run.folder import load_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -43,18 +48,6 @@ def rung(text: str) -> tuple[int, int]:
     if d < 1 or g < 8:
         raise argparse.ArgumentTypeError(f"got '{text}'; the downscale must be >= 1 and the grid >= 8 cells")
     return d, g
-
-
-def timed_run(args: list[str]) -> tuple[int, float, float, str]:
-    """Run ``args`` as a child process: (exit status, wall seconds, its peak resident GiB, its
-    output's last lines)."""
-    started = time.perf_counter()
-    child = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    output = child.stdout.read()
-    _, status, usage = os.wait4(child.pid, 0)
-    wall = time.perf_counter() - started
-    child.returncode = os.waitstatus_to_exitcode(status)
-    return child.returncode, wall, usage.ru_maxrss / 2**20, "\n".join(output.splitlines()[-25:])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,14 +73,17 @@ def main(argv: list[str] | None = None) -> int:
         table = []
         for downscale, grid in args.rungs:
             run_dir = folder / f"ds{downscale}_grid{grid}"
-            command = [sys.executable, "train.py", f"scene={args.scene}", f"scene.frame={args.frame}",
+            command = [sys.executable, str(REPO / "train.py"), f"scene={args.scene}", f"scene.frame={args.frame}",
                        f"scene.downscale={downscale}", f"grid.resolution={grid}", *args.overrides,
                        f"hydra.run.dir={run_dir}"]
-            status, wall, peak, tail = timed_run(command)
-            if status != 0:
-                print(tail, file=sys.stderr)
-                raise RuntimeError(f"{' '.join(command[1:])} ended with exit status {status}")
+            started = time.perf_counter()
+            child = run_child(command)
+            wall = time.perf_counter() - started
+            if child.returncode != 0:
+                last = (child.stderr.strip().splitlines() or ["no message"])[-1]
+                raise FlameReconError(f"{' '.join(command[1:])} failed (exit status {child.returncode}): {last}")
             done = load_run(run_dir)
+            peak = done.metrics["memory"]["resident"]
             train = tuple(done.scene.views[v] for v in done.train)
             common = Protocol("scored", done.scene.views[done.holdout[0]], args.score_downscale, None, None, train)
             half = protocol_scores(common, done.scene_options, done.scene, done.train, done.density, done.grid)
@@ -98,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             row = {"downscale": downscale, "grid": grid, "wall_seconds": wall, "peak_gib": peak,
                    "half_psnr": half["psnr"], "half_detail": half["detail"], "crop_psnr": crop["psnr"],
                    "crop_ssim": crop["ssim"], "crop_detail": crop["detail"],
-                   "timing": json.loads((run_dir / "metrics.json").read_text()).get("timing"),
+                   "timing": done.metrics.get("timing"),
                    "load": os.getloadavg()[0]}
             table.append(row)
             print(f"{downscale:9d} {grid:5d} {wall:7.1f} {peak:9.2f} {half['psnr']:8.2f} {half['detail']:7.3f} "

@@ -18,6 +18,11 @@ figures (``psnr``, ``ssim``, ``detail``, ``seconds`` per frame) and their means 
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import os
 import time
 

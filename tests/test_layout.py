@@ -18,7 +18,7 @@ PACKAGE = REPO / "flamerecon"
 #: leaf modules are the foundation; ``api`` and ``__init__`` are the front door above all.
 RANKS = {
     "errors": 0, "device": 0, "resources": 0, "plain": 0, "rules": 0, "arguments": 0, "native": 0,
-    "progress": 0,
+    "progress": 0, "machine": 0, "interrupt": 0,
     "geometry": 1, "operators": 2, "solvers": 3, "outputs": 4, "scenes": 5, "evaluate": 6,
     "fit": 7, "run": 8, "viewer": 9, "api": 10, "__main__": 10, "": 10,
 }

@@ -6,6 +6,7 @@ and the divergence guard (:mod:`flamerecon.run.hook`), the default one just solv
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -35,7 +36,7 @@ from flamerecon.fit.build import (
     split_views,
 )
 from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
-from flamerecon.fit.checks import density_fault
+from flamerecon.fit.checks import check_grid_memory, density_fault, memory_budget
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import LadderOptions, Level, ladder_rungs, plan_levels
 from flamerecon.fit.options import ReconstructionOptions
@@ -183,9 +184,11 @@ class Reconstruction:
     def grid(self) -> VoxelGrid:
         return self.setup.grid
 
-    @property
+    @functools.cached_property
     def density(self) -> torch.Tensor:
-        """(C, nz, ny, nx) emission density on :attr:`grid`."""
+        """(C, nz, ny, nx) emission density on :attr:`grid`: one tensor, made on first use, so
+        that an edit in place (a scale, a mask, a clamp) is what :meth:`score`, ``fr.score``,
+        ``fr.export`` and ``fr.render`` of it see."""
         return self.setup.volume(self.fit.result.x)
 
     @property
@@ -200,8 +203,10 @@ class Reconstruction:
         photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
         metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
                            self.setup.step, self.options.silhouette.as_dict(), photometry)
-        metrics["warnings"] = result_warnings(self.scene, self.density, metrics, self.setup.train + self.setup.holdout,
-                                              *penalty_of(self.options.solver.as_dict(), self.fit.l1))
+        metrics["warnings"] = result_warnings(
+            self.scene, self.density, {**metrics, "calibration": self.calibration}, self.setup.train + self.setup.holdout,
+            *penalty_of(self.options.solver.as_dict(), self.fit.l1), train=self.setup.train, step=self.setup.step,
+            bbox=(self.grid.bbox_min, self.grid.bbox_max))
         return metrics
 
 
@@ -456,6 +461,9 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
                         meta={k: v for k, v in scene.meta.items() if k != "calibrated_cameras"})
     train, holdout = split_views(scene, options)
     grid = scene_grid(replace(options.grid, resolution=refining.resolution or options.grid.resolution), scene)
+    if refining.resolution:  # its own grid: refused naming its own option
+        check_grid_memory(grid, len(scene.views), device, memory_budget(device, options.projector.max_memory_gb),
+                          "calibration.resolution")
     step = float(options.projector.step)
     # the densities the cameras are fitted to: an unpenalised refit would fit part of the
     # cameras' errors into them (held-out train02, ScalarFlow frame 35: 31.84 dB against 33.23

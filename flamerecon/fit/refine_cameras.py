@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
 from kornia.geometry.liegroup import So3
 
+from flamerecon import interrupt
 from flamerecon.errors import ArgumentError
 from flamerecon.fit.option_rules import check_section
 from flamerecon.geometry.cameras import (
@@ -437,6 +438,7 @@ def camera_step(fit: CameraFit | JointFit, theta: torch.Tensor, sizes: torch.Ten
     cost = objective(r, psi)
     mu, done, at_psi = 1e-3, 0, r  # at_psi: the residuals at psi, for rms_after
     for done in range(1, iterations + 1):
+        interrupt.check()
         H = torch.zeros(T * N_PARAMS, T * N_PARAMS, dtype=torch.float64)
         g = torch.zeros(T * N_PARAMS, dtype=torch.float64)
         Jd, rd = J.double().cpu(), r.double().cpu()
@@ -545,6 +547,7 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
         current = corrected_cameras(base, theta, pivot)
         fits = []
         for k, (frame, first) in enumerate(zip(frames, initial)):
+            interrupt.check()
             if others:
                 rest = [[j for j in range(T) if j != i] for i in range(T)]
                 volumes = [frame.solve([train[j] for j in js], camera_subset(current, js), None).detach()

@@ -14,10 +14,10 @@ import torch
 
 from flamerecon.errors import MemoryBudgetError
 from flamerecon.fit.checks import DENSE_BYTES_PER_VOXEL, check_grid_memory, memory_budget
-from flamerecon.fit.memory import format_bytes
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.geometry.cameras import pixel_rays
 from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.machine import format_bytes
 from flamerecon.operators.projector import (
     Rays,
     march_box,

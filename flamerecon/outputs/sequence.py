@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ import yaml
 
 from flamerecon.outputs.atomic import atomic_path
 from flamerecon.outputs.export import DENSITY_FILE, Density, load_density, write_pvd, write_vti
+from flamerecon.plain import json_value
 
 SEQUENCE_FILE = "sequence.npz"
 PVD_FILE = "sequence.pvd"
@@ -263,8 +263,8 @@ def _read_metrics(run_dir: Path) -> dict[str, Any]:
     if not path.is_file():
         return {}
     try:
-        return flatten_metrics(json.loads(path.read_text()))
-    except json.JSONDecodeError as err:
+        return flatten_metrics(json_value(path.read_text()))
+    except ValueError as err:
         raise SweepError(f"{path}: not valid JSON ({err})") from err
 
 

@@ -14,13 +14,14 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from flamerecon import interrupt
 from flamerecon.errors import Interrupted, ResumeError, SolveDiverged
 from flamerecon.evaluate.scores import render_scene_views, view_psnr
 from flamerecon.fit.build import Setup
 from flamerecon.fit.reconstruct import ResumePoint, SolveHook, Stage
 from flamerecon.outputs.figures import heldout_figure, top_view
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
-from flamerecon.run.guard import SolveGuard, StopSolve, stop_signals
+from flamerecon.run.guard import SolveGuard, StopSolve
 from flamerecon.run.summary import cells_of
 from flamerecon.run.tensorboard import RunWriter
 from flamerecon.solvers import Problem, Solver, SolveResult
@@ -187,10 +188,16 @@ class RunHook(SolveHook):
                            start_objective, {**meta, **carry}, (start, start_x), seconds_before)
         stopped: StopSolve | None = None
         try:
-            with stop_signals() as signals:
-                guard.signals = signals
+            with interrupt.deferred():
                 try:
-                    result = solver.solve(problem, x0=x0, callback=guard)
+                    try:
+                        result = solver.solve(problem, x0=x0, callback=guard)
+                    except interrupt.Stopped as stop:  # raised between chunks, away from a check
+                        if stop.forced:  # a second signal: at once, no checkpoint
+                            raise
+                        guard.stop_here(*guard.last_good, stop.signal)
+                    if interrupt.received():  # after the last check
+                        guard.stop_here(result.iterations, result.x, interrupt.received())
                     result.seconds = guard.seconds()
                 except StopSolve as stop:
                     if stop.reason == "interrupted":

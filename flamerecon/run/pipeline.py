@@ -21,10 +21,10 @@ from flamerecon.device import resolve_device
 from flamerecon.errors import SolveDiverged
 from flamerecon.fit import reconstruct as core
 from flamerecon.fit.build import Setup, build
-from flamerecon.fit.memory import peak_memory
 from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import Photometry, mean_of
 from flamerecon.fit.refine_cameras import RefineOptions
+from flamerecon.machine import peak_memory
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.export import check_exporters, export_run
 from flamerecon.outputs.mesh import DEFAULT_ISO
