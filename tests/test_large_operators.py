@@ -87,3 +87,28 @@ def test_the_size_estimate_counts_the_nonzeros_from_a_few_rays(monkeypatch, box_
     assert est.peak_bytes > est.operator_bytes
     monkeypatch.setattr(projector, "ESTIMATE_RAYS", 10**6)  # every ray: exact
     assert assembled_memory(box_grid, rays, voxel_index).nnz == nnz
+
+
+def test_a_stop_signal_inside_a_solve_ends_a_long_matrix_free_product_within_a_block(monkeypatch, box_grid):
+    """Inside a solve a stop signal is only recorded (the guard checkpoints at its next check);
+    a product that marches for minutes raises it between two of its blocks."""
+    from flamerecon import interrupt
+
+    rays = random_rays(box_grid, 300, seed=18)
+    op = MatrixFreeOperator(box_grid, rays, random_hull(box_grid, seed=19))
+    monkeypatch.setattr(projector, "CHUNK_SAMPLES", 100)  # dozens of blocks
+    blocks = []
+    sample = projector._sample
+
+    def sampling(volume, coords):
+        blocks.append(1)
+        if len(blocks) == 3:
+            monkeypatch.setattr(interrupt, "_received", "SIGTERM")  # as the deferred handler records it
+        return sample(volume, coords)
+
+    monkeypatch.setattr(projector, "_sample", sampling)
+    for product in (op.forward, op.adjoint):
+        blocks.clear()
+        with pytest.raises(interrupt.Stopped, match="SIGTERM received"):
+            product(torch.ones(op.shape[1 if product == op.forward else 0], 1))
+        assert len(blocks) == 3  # stopped after the block the signal came in, not at the product's end

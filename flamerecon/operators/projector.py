@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
 
+from flamerecon import interrupt
 from flamerecon.geometry.cameras import cameras_to, pixel_centers, pixel_rays, project_points
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.sparse import TRANSPOSE_BLOCK, CsrOperator, GrowingArray, stable_argsort
@@ -215,6 +216,7 @@ def integrate_dense(
         sums = weighted.new_zeros(C, sl.stop - sl.start).index_add_(1, smp.ray, weighted)
         out.append(sums.T)
         progress.update(sl.stop)
+        interrupt.check()  # a stop signal inside a solve ends a long march within a block
     if not out:
         return volume.new_zeros(0, C)
     return torch.cat(out, 0)
@@ -387,6 +389,7 @@ def assemble(
         vals_out.append(val)
         del smp, u, i0f, i0, idx, w, root, entry, key, order, val  # before the next chunk's
         progress.update(sl.stop)
+        interrupt.check()
     crow = torch.zeros(N + 1, dtype=torch.long, device=device)
     torch.cumsum(counts, 0, out=crow[1:])
     return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, M))
@@ -465,6 +468,7 @@ class MatrixFreeOperator:
                 (grad,) = torch.autograd.grad(weighted, volume, grad_outputs=y[sl].index_select(0, smp.ray).T)
                 total += grad
                 progress.update(sl.stop)
+                interrupt.check()
         return total.reshape(C, -1)[:, self.voxel_index].T.contiguous()
 
 
