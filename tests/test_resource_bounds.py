@@ -35,6 +35,8 @@ BOUNDS = {
     "threads": (cores(), "this machine's cores"),
     "solver.max_iters": (MAX_ITERATIONS, "solver.max_seconds"),
     "grid.level_iters": (MAX_ITERATIONS, "runs for days"),
+    "ladder.iterations": (MAX_ITERATIONS, "runs for days"),
+    "ladder.final_iterations": (MAX_ITERATIONS, "runs for days"),
     "select.iterations": (MAX_ITERATIONS, "runs for days"),
     "calibration.iterations": (MAX_ITERATIONS, "runs for days"),
     "calibration.first_iterations": (MAX_ITERATIONS, "runs for days"),
