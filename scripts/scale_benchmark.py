@@ -25,13 +25,11 @@ if __name__ == "__main__":
 import os
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from flamerecon.errors import FlameReconError
 from flamerecon.evaluate.protocols import PROTOCOLS, Protocol, protocol_scores
 from flamerecon.outputs.atomic import write_json_atomic
-from flamerecon.run.cli import at_least, output_file, run_child, run_script, script_parser
+from flamerecon.run.cli import at_least, output_file, run_script, script_parser, timed_child
 from flamerecon.run.folder import load_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -76,12 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             command = [sys.executable, str(REPO / "train.py"), f"scene={args.scene}", f"scene.frame={args.frame}",
                        f"scene.downscale={downscale}", f"grid.resolution={grid}", *args.overrides,
                        f"hydra.run.dir={run_dir}"]
-            started = time.perf_counter()
-            child = run_child(command)
-            wall = time.perf_counter() - started
-            if child.returncode != 0:
-                last = (child.stderr.strip().splitlines() or ["no message"])[-1]
-                raise FlameReconError(f"{' '.join(command[1:])} failed (exit status {child.returncode}): {last}")
+            wall = timed_child(command, f"train.py at scene.downscale={downscale}, grid.resolution={grid}")
             done = load_run(run_dir)
             peak = done.metrics["memory"]["resident"]
             train = tuple(done.scene.views[v] for v in done.train)

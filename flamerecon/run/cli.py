@@ -17,6 +17,7 @@ import re
 import signal
 import subprocess
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -159,6 +160,18 @@ def run_child(command: list[str]) -> subprocess.CompletedProcess:
                 child.communicate()
             raise
     return subprocess.CompletedProcess(command, child.returncode, out, err)
+
+
+def timed_child(command: list[str], what: str) -> float:
+    """Wall seconds of one child process (:func:`run_child`, a ``train.py`` run); a
+    :class:`~flamerecon.errors.FlameReconError` with its last line when it fails (``what``
+    names it: ``train.py on frame 5``)."""
+    started = time.perf_counter()
+    done = run_child(command)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        raise FlameReconError(f"{what} failed (exit status {done.returncode}): {last}")
+    return time.perf_counter() - started
 
 
 def run_script(body: Callable[[], int | None], debug: bool = False) -> int:
