@@ -14,7 +14,8 @@ the weights are relative to how much the motion explains, whatever the noise and
 A_{t+1}, b_{t+1} frame t+1's operator and training pixels (:class:`~flamerecon.fit.build.Setup`):
 the data are the next frame's *images*, not its reconstructed density, whose unseen structure
 is a guess. u lives on a coarse control grid (``control`` cells along the grid's longest side,
-trilinear in between; R the mean squared difference of neighbouring control points), fitted
+trilinear in between; R the mean squared velocity gradient between neighbouring control points,
+1/frame^2, so that a weight means the same on any grid and control grid), fitted
 coarse to fine (``control``/4, /2, then ``control`` cells, the density blurred by 2, 1, 0 cells)
 by L-BFGS, every term evaluated only on the cells that can hold smoke (t+1's hull and t's smoke
 dilated by ``margin`` cells). The divergence (central differences of one cell, 1/frame) is
@@ -28,8 +29,12 @@ sequence each pair starts from the previous pair's velocity and fits only the fi
 (:func:`~flamerecon.operators.warp.advect_volume`). :func:`shift_residuals` scores uniform
 vertical shifts on the same data term, the baseline a fitted flow must beat.
 
-Chosen on ScalarFlow frames 30-39 (horizons to frame 49, train02 held out; docs/results.md):
-16 control cells, smooth 0.03, divergence 1, inflow 0.12, warm starts of 15 iterations.
+Chosen on ScalarFlow frames 30-39 (predictions up to frame 49, train02 held out;
+docs/results.md, "Flow"): 16 control cells (24 fits the next frame better, 16 predicts 10 frames
+ahead better), smooth 30 (10-300 within 0.1 dB held out at k <= 5; 30 best on the training views),
+divergence 30 (the relative divergence 0.46 -> 0.15, for 0.1-0.5 dB of held-out PSNR at k = 1-5:
+the price of an incompressible flow on this capture), inflow 0.12 (0.06-0.2 alike), warm starts
+of 15 iterations (as good as 3 x 30 cold ones, 4-6 x faster).
 
     import flamerecon as fr
     recs = [fr.reconstruct(fr.load_scene("scalarflow", frame=t), fr.preset("scalarflow")) for t in (40, 41, 42)]
@@ -50,7 +55,7 @@ import torch.nn.functional as F
 
 from flamerecon.arguments import fields, instance, tensor, value, wrong_value
 from flamerecon.fit.build import Setup
-from flamerecon.fit.motion import _blur, control_shape, roughness
+from flamerecon.fit.motion import _blur, control_shape
 from flamerecon.fit.option_rules import check_section
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.base import LinearOperator
@@ -81,8 +86,8 @@ class FlowOptions:
     second (None: the capture's, where its files say)."""
 
     control: int = 16
-    smooth: float = 0.03
-    divergence: float = 1.0
+    smooth: float = 30.0
+    divergence: float = 30.0
     inflow: float = 0.12
     outside: float = 1.0
     iters: int = 30
@@ -137,6 +142,14 @@ class _Projected(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         return ctx.A.adjoint(grad.to(torch.float32).contiguous()).to(ctx.dtype), None, None
+
+
+def gradient_energy(control: torch.Tensor, spacing: tuple[float, float, float]) -> torch.Tensor:
+    """R(u): the mean squared difference of neighbouring control points along each axis, each
+    divided by their distance in cells (``spacing`` (x, y, z)): the squared velocity gradient,
+    1/frame^2, whatever the control grid's and the grid's resolution."""
+    terms = [(control.diff(dim=3 - a) / spacing[a]).pow(2).mean() for a in range(3) if control.shape[3 - a] > 1]
+    return sum(terms) if terms else control.sum() * 0
 
 
 def divergence_probes(points: torch.Tensor) -> torch.Tensor:
@@ -303,6 +316,7 @@ def estimate_velocity(source: torch.Tensor, target: Setup, options: FlowOptions 
         control = control.detach().clone().requires_grad_(True)
         blurred = _blur(data.x, sigma)
         scale = _to_control(shape, control)
+        spacing = control_spacing(shape, control)
         opt = torch.optim.LBFGS([control], lr=1.0, max_iter=int(iters), history_size=10,
                                 line_search_fn="strong_wolfe")
 
@@ -312,7 +326,7 @@ def estimate_velocity(source: torch.Tensor, target: Setup, options: FlowOptions 
             loss = 0.5 * data.residual(moved).pow(2).sum() / data.b_norm
             if options.outside and moved.shape[1] > data.inside:
                 loss = loss + float(options.outside) * 0.5 * moved[:, data.inside:].pow(2).sum() / data.norm
-            loss = loss / unmoved + float(options.smooth) * roughness(control)
+            loss = loss / unmoved + float(options.smooth) * gradient_energy(control, spacing)
             if options.divergence and probes.shape[1]:
                 loss = loss + float(options.divergence) * probed_divergence(control, probes, scale).pow(2).mean()
             loss.backward()
@@ -366,6 +380,10 @@ class Flow:
 
     def __post_init__(self) -> None:
         fields(self)
+        if len(self.frames) != len(self.pairs):
+            raise wrong_value("Flow.frames", self.frames, f"one frame number per pair ({len(self.pairs)})")
+        for i, pair in enumerate(self.pairs):
+            tensor(f"Flow.pairs[{i}].u", pair.u, "(3, nz, ny, nx) on the grid", shape=(3, *self.grid.shape))
 
     def velocity(self, index: int, units: str = "cells") -> torch.Tensor:
         """Pair ``index``'s velocity (3, nz, ny, nx): ``cells`` per frame, or ``world`` units
