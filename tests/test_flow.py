@@ -141,7 +141,7 @@ def test_uniform_shift_residuals_find_the_shift(tiny_setup):
 
 
 def test_flow_statistics_of_a_rigid_rotation():
-    z, y, x = torch.meshgrid(*[torch.arange(n, dtype=torch.float64) for n in SHAPE], indexing="ij")
+    z, _, x = torch.meshgrid(*[torch.arange(n, dtype=torch.float64) for n in SHAPE], indexing="ij")
     u = 0.05 * torch.stack([-(z - 7), torch.zeros_like(x), x - 8])
     relative, speed = flow_statistics(u, blobs(), FlowOptions(inflow=0.0))
     assert relative < 1e-9
@@ -227,7 +227,7 @@ def test_a_velocity_file_round_trips_and_names_what_is_wrong(tmp_path):
 
 def test_velocities_enter_the_sequence_files(tmp_path):
     from flamerecon.outputs.export import save_density
-    from flamerecon.outputs.sequence import write_sequence_npz, find_frame_runs
+    from flamerecon.outputs.sequence import find_frame_runs, write_sequence_npz
 
     for job, frame in enumerate((4, 5, 6)):
         folder = tmp_path / str(job)
@@ -262,7 +262,7 @@ def test_velocity_figures_are_drawn():
     pytest.importorskip("matplotlib", reason="the velocity figures need matplotlib")
     from flamerecon.outputs.flow_figures import streamlines_figure, velocity_slices_figure
 
-    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in SHAPE], indexing="ij")
+    z, _, x = np.meshgrid(*[np.arange(n, dtype=float) for n in SHAPE], indexing="ij")
     u = np.stack([-(z - 7), np.ones(SHAPE), x - 8]) * 0.1
     density = blobs().numpy()
     for figure in (velocity_slices_figure, streamlines_figure):

@@ -116,8 +116,8 @@ CALLS = {
              r"frame +0 -> 1: residual .*\n.*frame +1 -> 2: .*\nwritten: velocity\.npz in 2 run folders"),
     "flow_benchmark": (lambda t, run, dump: ["--frames", "0", "2", *PLUME], r"3 frames, 2 frame pairs in .* the flow took"),
     "predict": (lambda t, run, dump: ["--frames", "1", "1", *PLUME, "--horizons", "1", "2", "--out", str(t / "new" / "p.json")],
-                r"  2 flow .*\n  2 flow_causal .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction(.|\n)*velocity "
-                r"against the truth over the smoke: relative L2 \d\.\d+"),
+                (r"  2 flow .*\n  2 flow_causal .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction(.|\n)*velocity "
+                 r"against the truth over the smoke: relative L2 \d\.\d+")),
     "flame_benchmark": (lambda t, run, dump: ["--seeds", "0", *FLAME, "--out", str(t / "new" / "f.json")],
                         r"mean +opencv .* dB over nnls"),
     "heldout_limits": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0", "--pictures", str(t / "pics")],
