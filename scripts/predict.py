@@ -1,7 +1,7 @@
 """Future frames predicted by the fitted flow and scored in every camera, against persistence,
 a uniform upward shift and the per-frame reconstruction.
 
-    python scripts/predict.py --frames FIRST LAST --horizons 1 2 5 10 --out FILE.json \
+    python scripts/predict.py --frames FIRST LAST --horizons 1 2 5 10 --out FILE.json [--figures DIR] \
         [scene=scalarflow by default, any train.py overrides ...] [flow.KEY=VALUE ...]
 
 Frames FIRST-1 .. LAST + the longest horizon are reconstructed with the train.py config (in
@@ -19,7 +19,9 @@ per frame and per flow and the peak memory; ``--out`` writes it as JSON:
 "persistence": {...}, "shift": {...}, "reconstruction": {...}}, ...}, "shift_cells_per_frame":
 .., "per_frame": {...}, "flows": [...], "timing": {...}}``. On ``scene=plume`` (a known
 velocity) it also prints and writes each velocity's error: relative L2 and mean angle over the
-smoke (``velocity_error``).
+smoke (``velocity_error``). ``--figures DIR`` draws frame FIRST's velocity (speed and vorticity
+slices, streamlines) and, for the longest horizon, each held-out view captured beside every
+prediction.
 """
 
 from __future__ import annotations
@@ -31,9 +33,17 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 # isort: split
 
-from flamerecon.fit.prediction import METHODS, predict_sequence
+from flamerecon.fit.prediction import METHODS, predict_sequence, prediction_pictures
 from flamerecon.outputs.atomic import write_json_atomic
-from flamerecon.run.cli import at_least, compose_train, output_file, run_script, script_parser
+from flamerecon.outputs.figures import write_png
+from flamerecon.run.cli import (
+    at_least,
+    compose_train,
+    output_file,
+    output_folder,
+    run_script,
+    script_parser,
+)
 from flamerecon.run.flow import flow_options
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
@@ -46,6 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--horizons", type=at_least(1), nargs="+", default=[1, 2, 5, 10],
                         help="frames ahead to predict (default: 1 2 5 10)")
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON here")
+    parser.add_argument("--figures", type=output_folder, default=None,
+                        help="write here FIRST's velocity (slices, streamlines) and its held-out predictions")
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default scene=scalarflow) and flow.KEY=VALUE")
     args = parser.parse_args(argv)
     if args.frames[0] > args.frames[1]:
@@ -80,6 +92,10 @@ def main(argv: list[str] | None = None) -> int:
             err = out["velocity_error"]
             print(f"velocity against the truth over the smoke: relative L2 {err['rel_l2']:.3f}, mean angle "
                   f"{err['angular_deg']:.1f} degrees (mean of {len(err['per_pair'])} frame pairs)")
+        if args.figures is not None:
+            rate = flow.frame_rate or report.first["frame"].scene.meta.get("frame_rate")
+            for name, image in prediction_pictures(report, rate).items():
+                print(f"written: {write_png(args.figures / f'{name}.png', image)}")
         if args.out is not None:
             write_json_atomic(args.out, {**out, "frames": list(args.frames), "flow_options": flow.as_dict(),
                                          "overrides": list(args.overrides), "load_average_start": load})

@@ -115,9 +115,10 @@ CALLS = {
     "flow": (lambda t, run, dump: [str(run), "--figures", "1", "--no-vti"],
              r"frame +0 -> 1: residual .*\n.*frame +1 -> 2: .*\nwritten: velocity\.npz in 2 run folders"),
     "flow_benchmark": (lambda t, run, dump: ["--frames", "0", "2", *PLUME], r"3 frames, 2 frame pairs in .* the flow took"),
-    "predict": (lambda t, run, dump: ["--frames", "1", "1", *PLUME, "--horizons", "1", "2", "--out", str(t / "new" / "p.json")],
+    "predict": (lambda t, run, dump: ["--frames", "1", "1", *PLUME, "--horizons", "1", "2", "--out", str(t / "new" / "p.json"),
+                                      "--figures", str(t / "figures")],
                 (r"  2 flow .*\n  2 flow_causal .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction(.|\n)*velocity "
-                 r"against the truth over the smoke: relative L2 \d\.\d+")),
+                 r"against the truth over the smoke: relative L2 \d\.\d+(.|\n)*written: .*predictions_0001_k2_cam04\.png")),
     "flame_benchmark": (lambda t, run, dump: ["--seeds", "0", *FLAME, "--out", str(t / "new" / "f.json")],
                         r"mean +opencv .* dB over nnls"),
     "heldout_limits": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0", "--pictures", str(t / "pics")],

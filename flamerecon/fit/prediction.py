@@ -103,6 +103,7 @@ class PredictionReport:
     flows: list[dict]
     velocity_errors: list[dict] = field(default_factory=list)
     timing: dict = field(default_factory=dict)
+    first: dict = field(default_factory=dict)  # frame ``first``: its Frame, velocity u (cells/frame), predictions
 
     def as_dict(self) -> dict:
         """The JSON ``scripts/predict.py`` writes: ``horizons`` {"k": {method: {score: value}}}
@@ -154,6 +155,7 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
     shift = float(speeds[int(np.argmin(np.sum(curves, 0)))])
     table: dict = {k: {m: {s: [] for s in SCORES} for m in METHODS} for k in horizons}
     per_frame: dict = {}
+    first_frame: dict = {}
     silhouette = options.silhouette.as_dict()
     scoring = Progress("predict: scoring", last - first + 1, "frame")
     for n, t in enumerate(range(first, last + 1)):
@@ -167,6 +169,9 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
             if t - 1 in pairs:
                 found["flow_causal"] = advect(x, pairs[t - 1].u, k)
             per_frame[t][k] = {m: view_scores(d, frames[t + k], silhouette) for m, d in found.items()}
+            if t == first and k == horizon:
+                first_frame = {"frame": frames[t], "u": pairs[t].u, "target": frames[t + k], "horizon": k,
+                               "predictions": found}
             for m, scores in per_frame[t][k].items():
                 for s, v in scores.items():
                     table[k][m][s].append(v)
@@ -179,4 +184,34 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
               "flow_s_per_pair_warm": float(np.mean(warm)) if warm else math.nan,
               "flow_s_per_pair_cold": float(np.mean(cold)) if cold else math.nan,
               "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
-    return PredictionReport(means, per_frame, shift, [pairs[t].record() for t in sorted(pairs)], errors, timing)
+    return PredictionReport(means, per_frame, shift, [pairs[t].record() for t in sorted(pairs)], errors, timing,
+                            first_frame)
+
+
+def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> dict[str, np.ndarray]:
+    """The pictures of the first frame of ``report`` (H, W, 3) uint8 by name: its velocity's
+    slices and streamlines (world units per second at ``frame_rate``, else cells per frame), and
+    each held-out view of frame first + the longest horizon, captured beside every prediction."""
+    from flamerecon.fit.flow import cells_to_world
+    from flamerecon.outputs.figures import montage, to_rgb8
+    from flamerecon.outputs.flow_figures import streamlines_figure, velocity_slices_figure
+
+    found = report.first
+    frame, target, k = found["frame"], found["target"], found["horizon"]
+    t = int(frame.scene.meta.get("frame", 0))
+    world = frame_rate is not None
+    u = cells_to_world(found["u"], frame.grid, frame_rate) if world else found["u"]
+    unit = "" if world else " (cells, per frame)"
+    args = (frame.density.cpu().numpy(), u.cpu().numpy(), frame.grid.bbox_min, frame.grid.bbox_max)
+    out = {f"velocity_slices_{t:04d}": velocity_slices_figure(*args, f"frame {t} -> {t + 1}{unit}"),
+           f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}")}
+    for v in target.holdout:
+        captured = target.scene.images[v]
+        top = float(captured.max().clamp_min(1e-6))
+        tiles, labels = [to_rgb8(captured, top)], [f"captured {target.scene.views[v]}, frame {t + k}"]
+        for method, density in found["predictions"].items():
+            image = render_scene_views(density.float(), target.grid, target.scene, [v], target.step)[0]
+            tiles.append(to_rgb8(image, top))
+            labels.append(method if method == "reconstruction" else f"{method}, from frame {t}")
+        out[f"predictions_{t:04d}_k{k}_{target.scene.views[v]}"] = montage(tiles, len(tiles), labels)
+    return out
