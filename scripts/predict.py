@@ -19,7 +19,9 @@ per frame and per flow and the peak memory; ``--out`` writes it as JSON:
 "persistence": {...}, "shift": {...}, "reconstruction": {...}}, ...}, "shift_cells_per_frame":
 .., "per_frame": {...}, "flows": [...], "timing": {...}}``. On ``scene=plume`` (a known
 velocity) it also prints and writes each velocity's error: relative L2 and mean angle over the
-smoke (``velocity_error``). ``--figures DIR`` draws frame FIRST's velocity (speed and vorticity
+smoke (``velocity_error``). ``--variant NAME:KEY=VALUE,...`` (repeatable) scores another flow
+beside the default as ``flow:NAME`` (e.g. ``nodiv:divergence=0``): settings compared on the same
+frames. ``--figures DIR`` draws frame FIRST's velocity (speed and vorticity
 slices, streamlines) and, for the longest horizon, each held-out view captured beside every
 prediction.
 """
@@ -33,6 +35,7 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 # isort: split
 
+from flamerecon.errors import ArgumentError
 from flamerecon.fit.prediction import METHODS, predict_sequence, prediction_pictures
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.figures import write_png
@@ -56,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--horizons", type=at_least(1), nargs="+", default=[1, 2, 5, 10],
                         help="frames ahead to predict (default: 1 2 5 10)")
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON here")
+    parser.add_argument("--variant", action="append", default=[], metavar="NAME:KEY=VALUE,...",
+                        help="another flow to score beside the default, e.g. nodiv:divergence=0 (repeatable)")
     parser.add_argument("--figures", type=output_folder, default=None,
                         help="write here FIRST's velocity (slices, streamlines) and its held-out predictions")
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default scene=scalarflow) and flow.KEY=VALUE")
@@ -66,6 +71,13 @@ def main(argv: list[str] | None = None) -> int:
 
     def run() -> None:
         flow = flow_options([o for o in args.overrides if o.startswith("flow.")])
+        variants = {}
+        for text in args.variant:
+            name, _, settings = text.partition(":")
+            if not name or not settings:
+                raise ArgumentError(f"--variant: got '{text}'; give NAME:KEY=VALUE[,KEY=VALUE...], e.g. nodiv:divergence=0")
+            base = [o for o in args.overrides if o.startswith("flow.")]
+            variants[name] = flow_options([*base, *(f"flow.{kv}" for kv in settings.split(","))])
         cfg = compose_train([o for o in args.overrides if not o.startswith("flow.")])
         options = options_from_config(cfg)
         truth = None
@@ -79,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"load average {load:.1f} on {os.cpu_count()} CPUs at the start; frames {args.frames[0]}-"
               f"{args.frames[1]}, horizons {horizons}, scene {cfg.scene.name}, flow {flow.as_dict()}", flush=True)
         report = predict_sequence(lambda t: load_scene({**cfg.scene, "frame": t}), options, flow, args.frames[0],
-                                  args.frames[1], horizons, true_velocity=truth)
+                                  args.frames[1], horizons, true_velocity=truth, variants=variants)
         print_table(report.table)
         print(f"uniform shift fitted to the sequence: {report.shift:.2f} cells per frame")
         timing = report.timing
@@ -106,13 +118,13 @@ def main(argv: list[str] | None = None) -> int:
 
 def print_table(table: dict) -> None:
     """One row per horizon and method: held-out and training PSNR, SSIM, detail."""
-    print(f"{'k':>3} {'method':<15} {'held-out dB':>11} {'SSIM':>7} {'detail':>7} {'train dB':>9} {'SSIM':>7} "
+    print(f"{'k':>3} {'method':<20} {'held-out dB':>11} {'SSIM':>7} {'detail':>7} {'train dB':>9} {'SSIM':>7} "
           f"{'detail':>7}")
     for k, methods in table.items():
-        for m in METHODS:
+        for m in [*METHODS, *sorted(set(methods) - set(METHODS))]:
             if m in methods:
                 s = methods[m]
-                print(f"{k:>3} {m:<15} {s['heldout_psnr']:11.2f} {s['heldout_ssim']:7.4f} {s['heldout_detail']:7.3f} "
+                print(f"{k:>3} {m:<20} {s['heldout_psnr']:11.2f} {s['heldout_ssim']:7.4f} {s['heldout_detail']:7.3f} "
                       f"{s['train_psnr']:9.2f} {s['train_ssim']:7.4f} {s['train_detail']:7.3f}")
 
 

@@ -116,8 +116,8 @@ CALLS = {
              r"frame +0 -> 1: residual .*\n.*frame +1 -> 2: .*\nwritten: velocity\.npz in 2 run folders"),
     "flow_benchmark": (lambda t, run, dump: ["--frames", "0", "2", *PLUME], r"3 frames, 2 frame pairs in .* the flow took"),
     "predict": (lambda t, run, dump: ["--frames", "1", "1", *PLUME, "--horizons", "1", "2", "--out", str(t / "new" / "p.json"),
-                                      "--figures", str(t / "figures")],
-                (r"  2 flow .*\n  2 flow_causal .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction(.|\n)*velocity "
+                                      "--figures", str(t / "figures"), "--variant", "nodiv:divergence=0"],
+                (r"  2 flow .*\n  2 flow_causal .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction .*\n  2 flow:nodiv(.|\n)*velocity "
                  r"against the truth over the smoke: relative L2 \d\.\d+(.|\n)*written: .*predictions_0001_k2_cam04\.png")),
     "flame_benchmark": (lambda t, run, dump: ["--seeds", "0", *FLAME, "--out", str(t / "new" / "f.json")],
                         r"mean +opencv .* dB over nnls"),
@@ -223,6 +223,8 @@ BAD = [
     ("export", ["RUN", "--iso", "x"], r"argument --iso: invalid float value: 'x'"),
     ("preconditioning_study", ["--grid", "x"], r"argument --grid: invalid int value: 'x'"),
     ("predict", ["--frames", "5", "2"], r"argument --frames: FIRST 5 is after LAST 2"),
+    ("predict", ["--frames", "1", "2", "--variant", "nodiv"], r"--variant: got 'nodiv'; give NAME:KEY=VALUE"),
+    ("predict", ["--frames", "1", "2", "--variant", "a:divergence=-1"], r"flow\.divergence: got -1"),
     ("predict", ["--frames", "1", "2", "flow.nope=3"], r"flow\.nope=3: not a flow option; give flow\.KEY=VALUE"),
     ("predict", ["--frames", "1", "2", "flow.control=1"], r"flow\.control: got 1; flow\.control must be an integer >= 2"),
     ("flow", ["SWEEP", "flow.smooth=-1"], r"flow\.smooth: got -1; flow\.smooth must be >= 0"),

@@ -308,7 +308,7 @@ def estimate_velocity(source: torch.Tensor, target: Setup, options: FlowOptions 
     device = target.voxel_index.device
     stages = sorted({max(2, options.control // 4), max(2, options.control // 2), int(options.control)})
     data = _PairData(source, target, int(options.margin), 3 * 2 ** (len(stages) - 1))
-    smoke = smoke_mask(source) & (heights(shape, options.up) >= options.inflow)
+    smoke = smoke_mask(source) & (heights(shape, options.up) >= options.inflow).to(source.device)
     probes = divergence_probes(cell_points(smoke.reshape(-1).nonzero().squeeze(1).to(device), shape))
     unmoved = max(data.relative_residual(torch.zeros_like(data.points)), 1e-12)  # the data terms' scale
 

@@ -14,7 +14,8 @@ by
 - ``shift``: frame t's density moved up by k times one speed fitted to the whole stretch of
   frames reconstructed (the speed, cells per frame, whose uniform shift explains the next
   frames' images best summed over every pair, searched on ``speeds``);
-- ``reconstruction``: frame t+k's own reconstruction (what the cameras allow, not a prediction),
+- ``reconstruction``: frame t+k's own reconstruction (what the cameras allow, not a prediction);
+- ``flow:<name>``: ``flow`` with other options (``variants``), to compare settings,
 
 and each is rendered in every camera of frame t+k and scored against what it captured: PSNR,
 SSIM and detail correlation, means over the held-out views (``heldout_*``) and over the
@@ -26,7 +27,7 @@ from __future__ import annotations
 import math
 import resource
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,19 +122,24 @@ class PredictionReport:
 def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOptions, flow: FlowOptions,
                      first: int, last: int, horizons: Sequence[int], device: torch.device | str | None = None,
                      true_velocity: Callable[[VoxelGrid], torch.Tensor] | None = None,
-                     speeds: Sequence[float] = SPEEDS) -> PredictionReport:
+                     speeds: Sequence[float] = SPEEDS, variants: Mapping[str, FlowOptions] | None = None
+                     ) -> PredictionReport:
     """Predictions from frames ``first`` .. ``last`` (module doc); ``load(t)`` gives frame t's
     scene; ``true_velocity(grid)`` (cells per frame), when the truth is known, is compared with
-    every fitted velocity. Progress is logged per frame."""
+    every fitted velocity; ``variants`` {name: options}: more flows, each its own method
+    ``flow:<name>`` (the same frames, baselines and scores: a comparison of settings). Progress is
+    logged per frame."""
     device = resolve_device(options.device if device is None else str(device))
     horizon = max(horizons)
     start = max(first - 1, 0)
     frames: dict[int, Frame] = {}
-    pairs: dict[int, PairFlow] = {}
+    chains = {"flow": flow, **{f"flow:{name}": o for name, o in (variants or {}).items()}}
+    fitted: dict[str, dict[int, PairFlow]] = {name: {} for name in chains}
+    pairs = fitted["flow"]
     curves: list[list[float]] = []
     errors: list[dict] = []
     progress = Progress("predict: reconstructions and flows", last + horizon - start + 1, "frame")
-    previous = None
+    previous: dict[str, torch.Tensor | None] = dict.fromkeys(chains)
     for t in range(start, last + horizon + 1):
         clock = time.perf_counter()
         rec = reconstruct(load(t), options, device=device)
@@ -143,8 +149,10 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
         if t - 1 in frames:
             source = frames[t - 1].density
             if t - 1 <= last:  # the velocities the predictions use (and their warm-start chain)
-                pair = estimate_velocity(source, setup, flow, previous, t - 1)
-                pairs[t - 1], previous = pair, (pair.control if flow.warm_start else None)
+                for name, chosen in chains.items():
+                    pair = estimate_velocity(source, setup, chosen, previous[name], t - 1)
+                    fitted[name][t - 1], previous[name] = pair, (pair.control if chosen.warm_start else None)
+                pair = pairs[t - 1]
                 if true_velocity is not None:
                     errors.append({"frame": t - 1, **velocity_error(pair.u, true_velocity(rec.grid).to(pair.u),
                                                                     source)})
@@ -153,7 +161,8 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
         progress.update(t - start + 1, f"frame {t}: {frames[t].seconds:.1f} s"
                         + (f", flow {pairs[t - 1].seconds:.1f} s" if t - 1 in pairs else ""))
     shift = float(speeds[int(np.argmin(np.sum(curves, 0)))])
-    table: dict = {k: {m: {s: [] for s in SCORES} for m in METHODS} for k in horizons}
+    methods = [*METHODS, *list(chains)[1:]]
+    table: dict = {k: {m: {s: [] for s in SCORES} for m in methods} for k in horizons}
     per_frame: dict = {}
     first_frame: dict = {}
     silhouette = options.silhouette.as_dict()
@@ -168,6 +177,7 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
                      "reconstruction": frames[t + k].density}
             if t - 1 in pairs:
                 found["flow_causal"] = advect(x, pairs[t - 1].u, k)
+            found.update({name: advect(x, fitted[name][t].u, k) for name in list(chains)[1:]})
             per_frame[t][k] = {m: view_scores(d, frames[t + k], silhouette) for m, d in found.items()}
             if t == first and k == horizon:
                 first_frame = {"frame": frames[t], "u": pairs[t].u, "target": frames[t + k], "horizon": k,
@@ -176,16 +186,18 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
                 for s, v in scores.items():
                     table[k][m][s].append(v)
         scoring.update(n + 1, f"frame {t}")
-    means = {k: {m: {s: float(np.mean(v)) for s, v in row.items()} for m, row in methods.items() if row["heldout_psnr"]}
-             for k, methods in table.items()}
+    means = {k: {m: {s: float(np.mean(v)) for s, v in row.items()} for m, row in rows.items() if row["heldout_psnr"]}
+             for k, rows in table.items()}
     cold = [p.seconds for p in pairs.values() if not p.warm]
     warm = [p.seconds for p in pairs.values() if p.warm]
     timing = {"reconstruction_s_per_frame": float(np.mean([f.seconds for f in frames.values()])),
               "flow_s_per_pair_warm": float(np.mean(warm)) if warm else math.nan,
               "flow_s_per_pair_cold": float(np.mean(cold)) if cold else math.nan,
               "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
-    return PredictionReport(means, per_frame, shift, [pairs[t].record() for t in sorted(pairs)], errors, timing,
-                            first_frame)
+    records = [{**pairs[t].record(), **{f"{name}:residual": fitted[name][t].residual for name in list(chains)[1:]},
+                **{f"{name}:relative_divergence": fitted[name][t].relative_divergence for name in list(chains)[1:]}}
+               for t in sorted(pairs)]
+    return PredictionReport(means, per_frame, shift, records, errors, timing, first_frame)
 
 
 def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> dict[str, np.ndarray]:
