@@ -82,7 +82,7 @@ def test_the_plume_velocity_is_divergence_free():
     assert div[2:-2, 2:-2, 2:-2].abs().max() < 0.02 * grad  # central differences of a smooth field
     speed = plume_velocity(torch.tensor([[0.0, 0.5, 0.0], [0.4, 0.5, 0.0]]))
     assert speed[0].tolist() == pytest.approx([0.0, 0.6, 0.0])  # on the axis: the full rise, no swirl
-    assert speed[1, 1] < 0.6 and speed[1, 2] > 0  # off the axis: slower, turning anticlockwise seen from above
+    assert speed[1, 1] < 0.6 and speed[1, 2] > 0  # off the axis: slower, turning about -y (vorticity -2 swirl)
 
 
 @pytest.fixture(scope="module")

@@ -206,7 +206,11 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> d
     each held-out view of frame first + the longest horizon, captured beside every prediction."""
     from flamerecon.fit.flow import cells_to_world
     from flamerecon.outputs.figures import montage, to_rgb8
-    from flamerecon.outputs.flow_figures import streamlines_figure, velocity_slices_figure
+    from flamerecon.outputs.flow_figures import (
+        length_unit,
+        streamlines_figure,
+        velocity_slices_figure,
+    )
 
     found = report.first
     frame, target, k = found["frame"], found["target"], found["horizon"]
@@ -215,8 +219,9 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> d
     u = cells_to_world(found["u"], frame.grid, frame_rate) if world else found["u"]
     unit = "" if world else " (cells, per frame)"
     args = (frame.density.cpu().numpy(), u.cpu().numpy(), frame.grid.bbox_min, frame.grid.bbox_max)
-    out = {f"velocity_slices_{t:04d}": velocity_slices_figure(*args, f"frame {t} -> {t + 1}{unit}"),
-           f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}")}
+    length = length_unit(frame.scene.name)
+    out = {f"velocity_slices_{t:04d}": velocity_slices_figure(*args, f"frame {t} -> {t + 1}{unit}", length),
+           f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}", length)}
     for v in target.holdout:
         captured = target.scene.images[v]
         top = float(captured.max().clamp_min(1e-6))

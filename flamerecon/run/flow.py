@@ -24,7 +24,7 @@ from flamerecon.fit.build import build
 from flamerecon.fit.flow import FlowOptions, cells_to_world, estimate_velocity, flow_statistics
 from flamerecon.outputs.atomic import make_folder, write_json_atomic
 from flamerecon.outputs.figures import write_png
-from flamerecon.outputs.flow_figures import streamlines_figure, velocity_slices_figure
+from flamerecon.outputs.flow_figures import length_unit, streamlines_figure, velocity_slices_figure
 from flamerecon.outputs.sequence import assemble_sweep, find_frame_runs
 from flamerecon.outputs.velocity import VELOCITY_FILE, save_velocity
 from flamerecon.progress import Progress
@@ -94,12 +94,12 @@ def flow_sweep(sweep_dir: str | os.PathLike, options: FlowOptions | None = None,
                 folder = make_folder(sweep_dir / FIGURES)
                 density = previous.density.cpu().numpy()
                 velocity = world.cpu().numpy()
-                title = f"frame {frames[n - 1]} -> {frames[n]}"
+                title, unit = f"frame {frames[n - 1]} -> {frames[n]}", length_unit(previous.scene.name)
+                box = (previous.grid.bbox_min, previous.grid.bbox_max)
                 write_png(folder / f"velocity_slices_{frames[n - 1]:04d}.png",
-                          velocity_slices_figure(density, velocity, previous.grid.bbox_min, previous.grid.bbox_max,
-                                                 title))
+                          velocity_slices_figure(density, velocity, *box, title, unit))
                 write_png(folder / f"streamlines_{frames[n - 1]:04d}.png",
-                          streamlines_figure(density, velocity, previous.grid.bbox_min, previous.grid.bbox_max, title))
+                          streamlines_figure(density, velocity, *box, title, unit))
             records.append(record)
             progress.update(n, f"frame {frames[n - 1]}: residual {pair.residual_none:.4f} -> {pair.residual:.4f}")
             previous = current
