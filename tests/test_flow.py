@@ -155,7 +155,6 @@ def test_velocity_error_is_zero_for_the_truth_and_one_for_nothing():
     assert velocity_error(-u, u, blobs())["angular_deg"] == pytest.approx(180.0, abs=0.1)
 
 
-@pytest.mark.slow
 def test_the_plume_velocity_is_recovered_from_its_images():
     """The check the issue asks for, small: two frames of the plume reconstructed from six
     cameras, the velocity fitted to the second frame's images, compared with the truth."""

@@ -93,34 +93,39 @@ def velocity_slices_figure(density, velocity, bbox_min, bbox_max, title: str = "
     vort = max(float(np.nanpercentile(np.abs(omega), 99)) if np.isfinite(omega).any() else 1.0, 1e-12)
     for col, (name, h, v, cut, inplane, normal, extent) in enumerate(planes):
         dens = cut(density)
-        ax = fig.add_subplot(2, 3, col + 1)
-        im = ax.imshow(cut(speed), origin="lower", extent=extent, cmap="viridis", vmin=0, vmax=max(top, 1e-12))
         rows, cols = dens.shape
+        grid = (np.linspace(extent[0], extent[1], cols), np.linspace(extent[2], extent[3], rows))
+        axes = (f"{names[h]} [{length_unit}]", f"{names[v]} [{length_unit}]")
+        ax = _panel(fig, col + 1, cut(speed), extent, dens, ("viridis", 0, max(top, 1e-12)), "orange",
+                    f"speed, {name}", axes, f"speed [{length_unit}/s]")
         step = max(1, max(rows, cols) // arrows)
-        ys = np.linspace(extent[2], extent[3], rows)[::step]
-        xs = np.linspace(extent[0], extent[1], cols)[::step]
-        ax.quiver(xs, ys, cut(velocity[inplane[0]])[::step, ::step], cut(velocity[inplane[1]])[::step, ::step],
-                  color="white", scale_units="xy", angles="xy", scale=None, width=0.004)
-        if dens.max() > 0:
-            ax.contour(np.linspace(extent[0], extent[1], cols), np.linspace(extent[2], extent[3], rows), dens,
-                       levels=[0.1 * dens.max()], colors="orange", linewidths=0.8)
-        ax.set_title(f"speed, {name}")
-        ax.set_xlabel(f"{names[h]} [{length_unit}]")
-        ax.set_ylabel(f"{names[v]} [{length_unit}]")
-        fig.colorbar(im, ax=ax, label=f"speed [{length_unit}/s]", shrink=0.85)
-        ax2 = fig.add_subplot(2, 3, col + 4)
-        im2 = ax2.imshow(cut(omega[normal]), origin="lower", extent=extent, cmap="RdBu_r", vmin=-vort, vmax=vort)
-        if dens.max() > 0:
-            ax2.contour(np.linspace(extent[0], extent[1], cols), np.linspace(extent[2], extent[3], rows), dens,
-                        levels=[0.1 * dens.max()], colors="black", linewidths=0.8)
-        ax2.set_title(f"vorticity {names[normal]}-component, {name}")
-        ax2.set_xlabel(f"{names[h]} [{length_unit}]")
-        ax2.set_ylabel(f"{names[v]} [{length_unit}]")
-        fig.colorbar(im2, ax=ax2, label="vorticity [1/s]", shrink=0.85)
+        ax.quiver(grid[0][::step], grid[1][::step], cut(velocity[inplane[0]])[::step, ::step],
+                  cut(velocity[inplane[1]])[::step, ::step], color="white", scale_units="xy", angles="xy",
+                  scale=None, width=0.004)
+        _panel(fig, col + 4, cut(omega[normal]), extent, dens, ("RdBu_r", -vort, vort), "black",
+               f"vorticity {names[normal]}-component, {name}", axes, "vorticity [1/s]")
     if title:
         fig.suptitle(title)
     fig.tight_layout()
     return _rgb(fig)
+
+
+def _panel(fig, at: int, image: np.ndarray, extent, dens: np.ndarray, colours: tuple, outline: str, title: str,
+           axes: tuple[str, str], bar: str):
+    """Subplot ``at`` of a 2 x 3 figure: ``image`` (rows, cols) over ``extent`` in the colour map and
+    range ``colours``, the smoke's outline (10 % of ``dens``'s peak), titles and a colour bar."""
+    ax = fig.add_subplot(2, 3, at)
+    cmap, low, high = colours
+    im = ax.imshow(image, origin="lower", extent=extent, cmap=cmap, vmin=low, vmax=high)
+    if dens.max() > 0:
+        rows, cols = dens.shape
+        ax.contour(np.linspace(extent[0], extent[1], cols), np.linspace(extent[2], extent[3], rows), dens,
+                   levels=[0.1 * dens.max()], colors=outline, linewidths=0.8)
+    ax.set_title(title)
+    ax.set_xlabel(axes[0])
+    ax.set_ylabel(axes[1])
+    fig.colorbar(im, ax=ax, label=bar, shrink=0.85)
+    return ax
 
 
 def streamlines_figure(density, velocity, bbox_min, bbox_max, title: str = "", length_unit: str = "m"
