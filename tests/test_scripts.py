@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import json
 import re
 import shutil
 import sys
@@ -247,3 +248,26 @@ def test_a_bad_argument_is_one_line_and_status_2(name, argv, message, tmp_path, 
     assert code == 2
     assert len(err.splitlines()) == 1 and err.startswith(ERROR), err
     assert re.search(message, err), err
+
+
+def test_flow_writes_velocities_beside_the_frames(plume_sweep, capsys):
+    """scripts/flow.py on a sweep: velocity.npz in every run folder but the last, in world units
+    per second at the capture's frame rate; the sequence files again with them; flow.json,
+    TensorBoard scalars and the figures."""
+    from flamerecon.outputs.velocity import load_velocity
+
+    assert call("flow", [str(plume_sweep), "--figures", "0"]) == 0, capsys.readouterr().err
+    first = load_velocity(plume_sweep / "0")
+    assert first.frame == 0 and first.frame_rate == 30.0 and first.record["next_frame"] == 1
+    assert first.velocity.shape[0] == 3 and np.isfinite(first.velocity).all()
+    assert (plume_sweep / "1" / "velocity.npz").is_file() and not (plume_sweep / "2" / "velocity.npz").exists()
+    with np.load(plume_sweep / "sequence.npz") as f:
+        assert f["velocity"].shape == (2, *first.velocity.shape)
+        assert f["velocity_frames"].tolist() == [0, 1]
+        assert np.array_equal(f["velocity"][0], first.velocity)
+    assert len(json.loads((plume_sweep / "flow.json").read_text())["pairs"]) == 2
+    assert list((plume_sweep / "flow").glob("events.out.tfevents.*"))
+    assert {p.name for p in (plume_sweep / "flow_figures").iterdir()} == {"velocity_slices_0000.png",
+                                                                          "streamlines_0000.png"}
+    if importlib.util.find_spec("vtkmodules") is not None:
+        assert b'Name="velocity"' in (plume_sweep / "sequence_vti" / "frame_0000.vti").read_bytes()
