@@ -16,8 +16,10 @@ Step by step: ``setup = fr.build(scene, options)`` (silhouettes, hull, rays, ope
 ``fr.fit(setup, options)``; ``fr.render(density, grid, cameras)``; ``fr.load_run(folder)``
 reads a CLI run folder back; ``fr.reconstruct_frames(scenes, options, fr.JointFramesOptions())``
 solves consecutive frames jointly; ``fr.reconstruct_motion(scenes, options, fr.MotionOptions(window=5))``
-reconstructs one frame with its neighbours' views carried onto it by their motion; ``v = fr.view(rec)``
-serves it to a browser (``v.url``; ``v.stop()``). Names are imported on first use.
+reconstructs one frame with its neighbours' views carried onto it by their motion;
+``fr.estimate_flow(recs)`` fits a velocity to each consecutive pair of reconstructions and
+``fr.advect(density, u, k)`` carries a density k frames along one; ``v = fr.view(rec)`` serves it
+to a browser (``v.url``; ``v.stop()``). Names are imported on first use.
 
 Every public function and class checks its arguments before any work: a wrong type raises
 :class:`~flamerecon.errors.ArgumentTypeError` (a ``TypeError``), a wrong shape or a value out
@@ -57,18 +59,20 @@ API = {
     "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
     "reconstruct_frames": "fit.joint_frames",
     "MotionOptions": "fit.motion", "MotionReconstruction": "fit.motion", "reconstruct_motion": "fit.motion",
+    "FlowOptions": "fit.flow", "Flow": "fit.flow", "estimate_flow": "api", "advect": "fit.flow",
     "Problem": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes", "view": "api",
     "framing_camera": "api", "save_image": "api",
 }
 # ``fit`` is the package flamerecon.fit itself, callable as flamerecon.fit.reconstruct.fit: a
 # package and a function cannot both be the attribute ``flamerecon.fit``.
 
-__all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOptions",
+__all__ = ["DebiasOptions", "Fit", "Flow", "FlowOptions", "GridOptions", "HullOptions", "JointFramesOptions",
            "JointReconstruction", "MotionOptions", "MotionReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
            "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
            "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions", "Stage",
-           "VoxelGrid", "build", "export", "fit", "framing_camera", "load_run", "load_scene", "look_at_camera", "make_problem",
-           "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames", "reconstruct_motion", "render", "save_image", "score", "view"]
+           "VoxelGrid", "advect", "build", "estimate_flow", "export", "fit", "framing_camera", "load_run", "load_scene",
+           "look_at_camera", "make_problem", "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames",
+           "reconstruct_motion", "render", "save_image", "score", "view"]
 
 
 def __getattr__(name: str):

@@ -7,16 +7,20 @@ Every argument is checked here, by the CLI's rules where it has one
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
 import torch
 from kornia.geometry.camera import PinholeCamera
 
-from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_value
+from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_type, wrong_value
 from flamerecon.device import resolve_device
 from flamerecon.errors import ArgumentError, ConfigError
+from flamerecon.fit.build import build
+from flamerecon.fit.flow import Flow, FlowOptions
+from flamerecon.fit.flow import estimate_flow as estimate_flow_core
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
@@ -277,3 +281,48 @@ def save_image(path: str | os.PathLike, image: torch.Tensor, vmax: float | None 
     scaled = (image.detach().float().cpu() / (top or 1.0)).clamp(0, 1).expand(3, -1, -1)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     return write_png(path, np.ascontiguousarray((scaled.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)))
+
+
+def estimate_flow(frames: Sequence[Reconstruction | Run], options: FlowOptions | None = None,
+                  device: torch.device | str | None = None) -> Flow:
+    """The velocity of every consecutive pair of ``frames`` (Reconstructions of
+    :func:`~flamerecon.fit.reconstruct.reconstruct`, or run folders read back by
+    :func:`~flamerecon.run.folder.load_run`; consecutive frames of one capture on one grid box,
+    in order), each fitted to the next frame's training images
+    (:func:`flamerecon.fit.flow.estimate_flow`). A Run's operator is built again, one frame at a
+    time (a Reconstruction brings its own). The frame rate is ``options.frame_rate``, else the
+    capture's. Returns a :class:`~flamerecon.fit.flow.Flow`: ``flow.pairs[i].u`` in cells per
+    frame, ``flow.velocity(i, "world")`` in world units per second."""
+    if isinstance(frames, (Reconstruction, Run)) or not isinstance(frames, Sequence):
+        raise wrong_type("estimate_flow.frames", frames, "a list of Reconstructions or Runs, consecutive frames")
+    if len(frames) < 2:
+        raise wrong_value("estimate_flow.frames", frames, "at least two consecutive frames")
+    for i, frame in enumerate(frames):
+        instance(f"estimate_flow.frames[{i}]", frame, (Reconstruction, Run), "a Reconstruction or a Run")
+    instance("estimate_flow.options", options, FlowOptions, null=True)
+    instance("estimate_flow.device", device, (str, torch.device), "a device name (auto, cpu, cuda, cuda:N)", null=True)
+    options = options or FlowOptions()
+    grid = frames[0].grid
+    for i, frame in enumerate(frames[1:], 1):
+        if (frame.grid.bbox_min, frame.grid.bbox_max, frame.grid.shape) != (grid.bbox_min, grid.bbox_max, grid.shape):
+            raise ArgumentError(f"estimate_flow.frames[{i}]: its grid {frame.grid} is not frames[0]'s {grid}; "
+                                "reconstruct every frame on one box (grid.bbox) and resolution")
+        if frame.density.shape[0] != frames[0].density.shape[0]:
+            raise ArgumentError(f"estimate_flow.frames[{i}]: {frame.density.shape[0]} channels, frames[0] "
+                                f"{frames[0].density.shape[0]}; every frame of one capture")
+    numbers = [frame.scene.meta.get("frame") for frame in frames]
+    if all(isinstance(n, int) for n in numbers) and any(b != a + 1 for a, b in pairwise(numbers)):
+        raise wrong_value("estimate_flow.frames", numbers, "consecutive frames in order (t, t+1, t+2, ...): a "
+                          "velocity carries one frame onto the next")
+    frame_rate = options.frame_rate or frames[0].scene.meta.get("frame_rate")
+    target = resolve_device(str(device)) if device is not None else frames[0].density.device
+
+    def next_setup(i: int):
+        frame = frames[i]
+        if isinstance(frame, Reconstruction):
+            return frame.setup
+        return build(frame.scene, frame.options, target, frame.grid)
+
+    densities = [frame.density.detach().to(target) for frame in frames]
+    return estimate_flow_core(densities, next_setup, grid, options,
+                              [n if isinstance(n, int) else i for i, n in enumerate(numbers)], frame_rate)

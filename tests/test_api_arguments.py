@@ -56,8 +56,11 @@ def w():
     motion = fr.reconstruct_motion([scene, later], options, fr.MotionOptions(window=1), target=0)
     problem, solver, _ = fr.make_problem(options.solver, setup)
     M, C = int(setup.voxel_index.numel()), int(setup.pixels.shape[1])
+    from flamerecon.fit.flow import PairFlow
+
+    pair = PairFlow(torch.zeros(3, *rec.grid.shape), torch.zeros(3, 2, 2, 2), 0.1, 0.05, 0.1, 0.5, 1.0, False, 0)
     return SimpleNamespace(scene=scene, options=options, setup=setup, rec=rec, run=run, joint=joint, motion=motion,
-                           problem=problem, solver=solver, M=M, C=C)
+                           problem=problem, solver=solver, M=M, C=C, pair=pair)
 
 
 def hook_solve(w, **change):
@@ -98,6 +101,23 @@ CASES = [
     ("HullOptions", "type", lambda w: fr.HullOptions(margin_voxels="1"), TYPE, "hull.margin_voxels"),
     ("HullOptions", "shape", lambda w: fr.HullOptions(margin_voxels=(1, 1)), TYPE, "hull.margin_voxels"),
     ("HullOptions", "range", lambda w: fr.HullOptions(margin_voxels=-1), VALUE, "hull.margin_voxels"),
+    ("FlowOptions", "none", lambda w: fr.FlowOptions(control=None), TYPE, "flow.control"),
+    ("FlowOptions", "type", lambda w: fr.FlowOptions(up=1), TYPE, "flow.up"),
+    ("FlowOptions", "shape", lambda w: fr.FlowOptions(smooth=[1.0]), TYPE, "flow.smooth"),
+    ("FlowOptions", "range", lambda w: fr.FlowOptions(inflow=2.0), VALUE, "flow.inflow"),
+    ("Flow", "none", lambda w: fr.Flow(None, [0], [w.pair], fr.FlowOptions()), TYPE, "Flow.grid"),
+    ("Flow", "type", lambda w: fr.Flow(w.rec.grid, [0], [w.pair], {"control": 8}), TYPE, "Flow.options"),
+    ("Flow", "shape", lambda w: fr.Flow(w.rec.grid, [0], [replace(w.pair, u=torch.zeros(3, 2, 2, 2))],
+                                        fr.FlowOptions()), VALUE, "Flow.pairs[0].u"),
+    ("Flow", "range", lambda w: fr.Flow(w.rec.grid, [0, 1], [w.pair], fr.FlowOptions()), VALUE, "Flow.frames"),
+    ("advect", "none", lambda w: fr.advect(None, w.pair.u, 1), TYPE, "advect.density"),
+    ("advect", "type", lambda w: fr.advect(w.rec.density, w.pair.u, "1"), TYPE, "advect.steps"),
+    ("advect", "shape", lambda w: fr.advect(w.rec.density, torch.zeros(3, 2, 2, 2), 1), VALUE, "advect.velocity"),
+    ("advect", "range", lambda w: fr.advect(w.rec.density, w.pair.u, -1), VALUE, "advect.steps"),
+    ("estimate_flow", "none", lambda w: fr.estimate_flow(None), TYPE, "estimate_flow.frames"),
+    ("estimate_flow", "type", lambda w: fr.estimate_flow([w.rec, "frame 1"]), TYPE, "estimate_flow.frames[1]"),
+    ("estimate_flow", "shape", lambda w: fr.estimate_flow([w.rec]), VALUE, "estimate_flow.frames"),
+    ("estimate_flow", "range", lambda w: fr.estimate_flow([w.rec, w.rec]), VALUE, "estimate_flow.frames"),
     ("MotionOptions", "none", lambda w: fr.MotionOptions(window=None), TYPE, "motion.window"),
     ("MotionOptions", "type", lambda w: fr.MotionOptions(fit_to=1), TYPE, "motion.fit_to"),
     ("MotionOptions", "shape", lambda w: fr.MotionOptions(decay=[0.5]), TYPE, "motion.decay"),

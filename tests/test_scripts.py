@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import json
 import re
 import shutil
 import sys
@@ -16,10 +17,11 @@ from omegaconf import OmegaConf
 
 from flamerecon.outputs.export import save_density
 from flamerecon.run.pipeline import reconstruct
-from tests.helpers import FAST, REPO, TINY, tiny_cfg, tmpfs
+from tests.helpers import FAST, REPO, TINY, tiny_cfg, tiny_config, tmpfs
 
 SCRIPTS = sorted(p.stem for p in (REPO / "scripts").glob("*.py"))
 SYNTHETIC = ["scene=synthetic", *TINY, *FAST]
+PLUME = ["scene=plume", *TINY, *FAST]
 #: the synthetic flame benchmark's scene (7 cameras) and every method's options, tiny
 FLAME = ["scene.width=48", "scene.height=36", "scene.downscale=1", "scene.phantom_resolution=32", "grid.resolution=12",
          *FAST, "device=cpu", "calibration.rounds=1", "calibration.iterations=1", "select.iterations=5",
@@ -64,6 +66,18 @@ def benchmark_dump(tmp_path_factory):
                               "--reference-iters", "20", "--dump", str(dump), "--out", str(dump / "b.json"),
                               "--device", "cpu", "--threads", "1"]) == 0
     return dump
+
+
+@pytest.fixture(scope="module")
+def plume_sweep(tmp_path_factory):
+    """A multirun folder of three tiny train.py runs of the synthetic plume, frames 0-2."""
+    folder = tmp_path_factory.mktemp("plume") / "sweep"
+    for frame in (0, 1, 2):
+        cfg = tiny_config("scene=plume", f"scene.frame={frame}", *FAST)
+        reconstruct(cfg, folder / str(frame))
+        (folder / str(frame) / ".hydra").mkdir()
+        OmegaConf.save(cfg, folder / str(frame) / ".hydra" / "config.yaml")
+    return folder
 
 
 def sweep(tmp_path: Path) -> Path:
@@ -114,6 +128,13 @@ CALLS = {
     "first_run": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC, "calibration.refine=pose",
                                         "calibration.frames=[2]", "calibration.rounds=1", "calibration.iterations=1"],
                   r"first run \(frame \d+, cameras fitted\): .* s wall .*, detail \d\.\d+;.*\nlater frame \(frame \d+, cameras read\): .*"),
+    "flow": (lambda t, run, dump: [str(run), "--figures", "1", "--no-vti"],
+             r"frame +0 -> 1: residual .*\n.*frame +1 -> 2: .*\nwritten: velocity\.npz in 2 run folders"),
+    "flow_benchmark": (lambda t, run, dump: ["--frames", "0", "2", *PLUME], r"3 frames, 2 frame pairs in .* the flow took"),
+    "predict": (lambda t, run, dump: ["--frames", "1", "1", *PLUME, "--horizons", "1", "2", "--out", str(t / "new" / "p.json"),
+                                      "--figures", str(t / "figures"), "--variant", "nodiv:divergence=0"],
+                (r"  2 flow .*\n  2 flow_causal .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction .*\n  2 flow:nodiv(.|\n)*velocity "
+                 r"against the truth over the smoke: relative L2 \d\.\d+(.|\n)*written: .*predictions_0001_k2_cam04\.png")),
     "flame_benchmark": (lambda t, run, dump: ["--seeds", "0", *FLAME, "--out", str(t / "new" / "f.json")],
                         r"mean +opencv .* dB over nnls"),
     "heldout_limits": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0", "--pictures", str(t / "pics")],
@@ -168,6 +189,7 @@ def test_a_tiny_real_call(name, tmp_path, capsys, request, monkeypatch):
     monkeypatch.chdir(tmp_path)  # default output folders land here
     make, shows = CALLS[name]
     run = request.getfixturevalue("finished_run") if name in ("evaluate", "export", "render") else None
+    run = request.getfixturevalue("plume_sweep") if name == "flow" else run
     dump = request.getfixturevalue("benchmark_dump") if name in ("benchmark", "preconditioning_study") else None
     code = call(name, make(tmp_path, run, dump))
     out, err = capsys.readouterr()
@@ -229,6 +251,14 @@ BAD = [
     ("assemble", ["SWEEP", "--no-such-flag"], r"unrecognized arguments: --no-such-flag"),
     ("export", ["RUN", "--iso", "x"], r"argument --iso: invalid float value: 'x'"),
     ("preconditioning_study", ["--grid", "x"], r"argument --grid: invalid int value: 'x'"),
+    ("predict", ["--frames", "5", "2"], r"argument --frames: FIRST 5 is after LAST 2"),
+    ("predict", ["--frames", "1", "2", "--variant", "nodiv"], r"--variant: got 'nodiv'; give NAME:KEY=VALUE"),
+    ("predict", ["--frames", "1", "2", "--variant", "a:divergence=-1"], r"flow\.divergence: got -1"),
+    ("predict", ["--frames", "1", "2", "flow.nope=3"], r"flow\.nope=3: not a flow option; give flow\.KEY=VALUE"),
+    ("predict", ["--frames", "1", "2", "flow.control=1"], r"flow\.control: got 1; flow\.control must be an integer >= 2"),
+    ("flow", ["SWEEP", "flow.smooth=-1"], r"flow\.smooth: got -1; flow\.smooth must be >= 0"),
+    ("flow", ["SWEEP"], r"no run folder with density\.npz"),
+    ("flow_benchmark", ["--frames", "3", "3"], r"argument --frames: FIRST 3 is not before LAST 3"),
 ]
 
 
@@ -246,3 +276,26 @@ def test_a_bad_argument_is_one_line_and_status_2(name, argv, message, tmp_path, 
     assert code == 2
     assert len(err.splitlines()) == 1 and err.startswith(ERROR), err
     assert re.search(message, err), err
+
+
+def test_flow_writes_velocities_beside_the_frames(plume_sweep, capsys):
+    """scripts/flow.py on a sweep: velocity.npz in every run folder but the last, in world units
+    per second at the capture's frame rate; the sequence files again with them; flow.json,
+    TensorBoard scalars and the figures."""
+    from flamerecon.outputs.velocity import load_velocity
+
+    assert call("flow", [str(plume_sweep), "--figures", "0"]) == 0, capsys.readouterr().err
+    first = load_velocity(plume_sweep / "0")
+    assert first.frame == 0 and first.frame_rate == 30.0 and first.record["next_frame"] == 1
+    assert first.velocity.shape[0] == 3 and np.isfinite(first.velocity).all()
+    assert (plume_sweep / "1" / "velocity.npz").is_file() and not (plume_sweep / "2" / "velocity.npz").exists()
+    with np.load(plume_sweep / "sequence.npz") as f:
+        assert f["velocity"].shape == (2, *first.velocity.shape)
+        assert f["velocity_frames"].tolist() == [0, 1]
+        assert np.array_equal(f["velocity"][0], first.velocity)
+    assert len(json.loads((plume_sweep / "flow.json").read_text())["pairs"]) == 2
+    assert list((plume_sweep / "flow").glob("events.out.tfevents.*"))
+    assert {p.name for p in (plume_sweep / "flow_figures").iterdir()} == {"velocity_slices_0000.png",
+                                                                          "streamlines_0000.png"}
+    if importlib.util.find_spec("vtkmodules") is not None:
+        assert b'Name="velocity"' in (plume_sweep / "sequence_vti" / "frame_0000.vti").read_bytes()

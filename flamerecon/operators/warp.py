@@ -12,6 +12,13 @@ weights per output cell. Its dense form (:func:`warp_volume`, ``grid_sample`` wi
 ``align_corners=True``) is differentiable in ``u`` and is what a motion is fitted through; its
 matrix form (:func:`warp_matrix`, rows on one hull, columns on another) is what a solve uses,
 with the exact adjoint of a stored transpose.
+
+A velocity is the same field read as cells per frame: :func:`advect_volume` carries a density
+``steps`` frames along a steady one (semi-Lagrangian: the characteristic traced back ``steps``
+times through ``u``, then the density interpolated once, so a long horizon is not blurred by
+repeated interpolation); :func:`divergence` and :func:`curl` differentiate it (central
+differences, one-sided at the border, ``torch.gradient``). :func:`sample_points` reads a field
+at scattered cell coordinates, which is how a fit evaluates only the cells it needs.
 """
 
 from __future__ import annotations
@@ -47,6 +54,59 @@ def warp_volume(volume: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """W_u applied to a dense density (C, nz, ny, nx) (module doc); differentiable in both."""
     grid = _sample_grid(u.to(volume.dtype))
     return F.grid_sample(volume[None], grid, mode="bilinear", padding_mode="zeros", align_corners=True)[0]
+
+
+def cell_points(flat_index: torch.Tensor, shape: tuple[int, int, int], dtype=torch.float64) -> torch.Tensor:
+    """(3, P) cell coordinates (x, y, z) of the flat indices (P,) of a grid of ``shape`` (nz, ny, nx)."""
+    _, ny, nx = (int(n) for n in shape)
+    flat = flat_index.long()
+    return torch.stack([flat % nx, (flat // nx) % ny, flat // (ny * nx)]).to(dtype)
+
+
+def sample_points(field: torch.Tensor, points: torch.Tensor, padding: str = "zeros") -> torch.Tensor:
+    """A field (C, nz, ny, nx) read trilinearly at ``points`` (3, P) in its own cell
+    coordinates (x, y, z; cell centres at integers): (C, P), differentiable in both.
+    ``padding``: ``zeros`` outside the grid (a density) or ``border`` (a velocity extends)."""
+    nz, ny, nx = field.shape[1:]
+    scale = [2.0 / max(n - 1, 1) for n in (nx, ny, nz)]
+    grid = torch.stack([points[a].to(field.dtype) * scale[a] - 1.0 for a in range(3)], -1)
+    return F.grid_sample(field[None], grid.reshape(1, 1, 1, -1, 3), mode="bilinear", padding_mode=padding,
+                         align_corners=True).reshape(field.shape[0], -1)
+
+
+def advect_volume(volume: torch.Tensor, u: torch.Tensor, steps: int) -> torch.Tensor:
+    """A density (C, nz, ny, nx) carried ``steps`` frames by the steady velocity ``u`` (3, nz,
+    ny, nx) in cells per frame: each cell p traced back through p <- p - u(p) ``steps`` times
+    (u read trilinearly, held at the border), the density then read once there (zero outside
+    the grid). ``steps`` = 1 is :func:`warp_volume`; 0 returns ``volume``."""
+    if steps == 0:
+        return volume
+    shape = tuple(int(n) for n in volume.shape[1:])
+    points = cell_points(torch.arange(volume[0].numel(), device=volume.device), shape, u.dtype)
+    for _ in range(int(steps)):
+        points = points - sample_points(u, points, "border")
+    return sample_points(volume, points).reshape(volume.shape)
+
+
+def _derivative(component: torch.Tensor, axis: int, spacing: float) -> torch.Tensor:
+    """d component / d (grid axis ``axis`` of (nz, ny, nx)); zero along an axis of one cell."""
+    if component.shape[axis] < 2:
+        return torch.zeros_like(component)
+    return torch.gradient(component, spacing=float(spacing), dim=axis)[0]
+
+
+def divergence(u: torch.Tensor, spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> torch.Tensor:
+    """div u (nz, ny, nx) of a field (3, nz, ny, nx) with components (x, y, z), ``spacing`` its
+    (x, y, z) cell size (in the units its values are divided by)."""
+    return sum(_derivative(u[a], 2 - a, spacing[a]) for a in range(3))
+
+
+def curl(u: torch.Tensor, spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> torch.Tensor:
+    """The vorticity curl u (3, nz, ny, nx), components (x, y, z), of a field (3, nz, ny, nx)."""
+    def d(comp: int, along: int) -> torch.Tensor:
+        return _derivative(u[comp], 2 - along, spacing[along])
+
+    return torch.stack([d(2, 1) - d(1, 2), d(0, 2) - d(2, 0), d(1, 0) - d(0, 1)])
 
 
 def warp_matrix(u: torch.Tensor, src_index: torch.Tensor, dst_index: torch.Tensor) -> CsrOperator:

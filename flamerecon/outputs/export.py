@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 import xml.etree.ElementTree as ET
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -176,12 +176,15 @@ def _vtk():
 
 
 def write_vti(
-    path: str | os.PathLike, density, bbox_min, bbox_max, names: Sequence[str] | None = None
+    path: str | os.PathLike, density, bbox_min, bbox_max, names: Sequence[str] | None = None,
+    vectors: Mapping[str, Any] | None = None,
 ) -> Path:
     """VTK XML image data: point data sampled at voxel centres, one float32 array per channel.
 
     density: (C, nz, ny, nx); origin = centre of voxel (0, 0, 0), spacing = voxel size.
-    The first channel is the active scalar (what ParaView colours by first).
+    The first channel is the active scalar (what ParaView colours by first). ``vectors``:
+    {name: (3, nz, ny, nx) components x, y, z} written as 3-component arrays (the first is the
+    active vectors: ParaView's Glyph and Stream Tracer filters take it).
     """
     numpy_support, vtkImageData, vtkXMLImageDataWriter = _vtk()
     vol = np.ascontiguousarray(_as_numpy(density), dtype=np.float32)
@@ -199,6 +202,15 @@ def write_vti(
         array.SetName(name)
         image.GetPointData().AddArray(array)
     image.GetPointData().SetActiveScalars(names[0])
+    for k, (name, field) in enumerate((vectors or {}).items()):
+        field = np.ascontiguousarray(_as_numpy(field), dtype=np.float32)
+        if field.shape != (3, nz, ny, nx):
+            raise ValueError(f"{path}: vectors '{name}' of shape {field.shape}, the density's grid needs (3, {nz}, {ny}, {nx})")
+        array = numpy_support.numpy_to_vtk(np.ascontiguousarray(field.reshape(3, -1).T), deep=True)
+        array.SetName(name)
+        image.GetPointData().AddArray(array)
+        if k == 0:
+            image.GetPointData().SetActiveVectors(name)
     path = Path(path)
     with atomic_path(path) as tmp:
         writer = vtkXMLImageDataWriter()

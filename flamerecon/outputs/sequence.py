@@ -6,8 +6,11 @@ A sweep folder (``python train.py -m scene.frame=...``) holds one run folder per
 
 - ``sequence.npz``: ``density`` float32 (T, C, nz, ny, nx), ``frames`` (T,) int64, ``bbox_min``,
   ``bbox_max`` (3,), ``views`` (T, V) names, ``run_dirs`` (T,) job folder names;
-  frames in increasing order, streamed one frame at a time (memory: one frame);
-- ``sequence.pvd`` + ``sequence_vti/frame_NNNN.vti``: the series for ParaView (time = frame);
+  frames in increasing order, streamed one frame at a time (memory: one frame); where run
+  folders hold a ``velocity.npz`` (``scripts/flow.py``), also ``velocity`` float32 (F, 3, nz, ny,
+  nx) in world units per second and ``velocity_frames`` (F,) int64, the frames they start from;
+- ``sequence.pvd`` + ``sequence_vti/frame_NNNN.vti``: the series for ParaView (time = frame),
+  with the frame's ``velocity`` vectors where it has one;
 - ``sequence_metrics.csv`` (one row per frame, nested metrics flattened to dotted names) and
   ``sequence_metrics.png`` when matplotlib is installed.
 """
@@ -27,6 +30,7 @@ import yaml
 
 from flamerecon.outputs.atomic import atomic_path
 from flamerecon.outputs.export import DENSITY_FILE, Density, load_density, write_pvd, write_vti
+from flamerecon.outputs.velocity import VELOCITY_FILE, load_velocity
 from flamerecon.plain import json_value
 
 SEQUENCE_FILE = "sequence.npz"
@@ -134,6 +138,14 @@ def write_sequence_npz(path: str | os.PathLike, runs: list[FrameRun]) -> Path:
                 if index:
                     views.append(volume.views)
                 member.write(np.ascontiguousarray(volume.density, dtype="<f4").tobytes())
+        moving = [r for r in runs if (r.run_dir / VELOCITY_FILE).is_file()]
+        if moving:
+            with archive.open("velocity.npy", "w", force_zip64=True) as member:
+                header = {"descr": np.dtype("<f4").str, "fortran_order": False,
+                          "shape": (len(moving), 3, *first.density.shape[1:])}
+                np.lib.format.write_array_header_2_0(member, header)
+                for run in moving:
+                    member.write(np.ascontiguousarray(_run_velocity(run.run_dir, first), dtype="<f4").tobytes())
         width = max((len(v) for v in views), default=0)
         small = {
             "frames": np.array([r.frame for r in runs], dtype=np.int64),
@@ -142,6 +154,7 @@ def write_sequence_npz(path: str | os.PathLike, runs: list[FrameRun]) -> Path:
             "views": np.array([v + [""] * (width - len(v)) for v in views], dtype=np.str_)
             .reshape(len(runs), width),
             "run_dirs": np.array([r.run_dir.name for r in runs], dtype=np.str_),
+            **({"velocity_frames": np.array([r.frame for r in moving], dtype=np.int64)} if moving else {}),
         }
         for name, array in small.items():
             buffer = io.BytesIO()
@@ -159,7 +172,9 @@ def write_vti_series(sweep_dir: str | os.PathLike, runs: list[FrameRun]) -> Path
     for run in runs:
         volume = load_density(run.run_dir)
         file = folder / f"frame_{run.frame:04d}.vti"
-        write_vti(file, volume.density, volume.bbox_min, volume.bbox_max)
+        moving = (run.run_dir / VELOCITY_FILE).is_file()
+        write_vti(file, volume.density, volume.bbox_min, volume.bbox_max,
+                  vectors={"velocity": _run_velocity(run.run_dir, volume)} if moving else None)
         entries.append((run.frame, file.relative_to(sweep_dir)))
     return write_pvd(sweep_dir / PVD_FILE, entries)
 
@@ -280,6 +295,16 @@ def _check_same_grid(run_dir: Path, volume: Density, first: Density, first_dir: 
             raise SweepError(
                 f"{run_dir / DENSITY_FILE}: field '{name}' {a} differs from {first_dir}'s {b}"
             )
+
+
+def _run_velocity(run_dir: Path, density: Density) -> np.ndarray:
+    """The velocity (3, nz, ny, nx) of a run folder, checked against its density's grid."""
+    found = load_velocity(run_dir)
+    if found.velocity.shape[1:] != density.density.shape[1:] or not (
+            np.allclose(found.bbox_min, density.bbox_min) and np.allclose(found.bbox_max, density.bbox_max)):
+        raise SweepError(f"{run_dir / VELOCITY_FILE}: field 'velocity' of shape {found.velocity.shape} on the box "
+                         f"{found.bbox_min}-{found.bbox_max} is not on the density's grid {density.density.shape[1:]}")
+    return found.velocity
 
 
 def _read_yaml(path: Path) -> Any:

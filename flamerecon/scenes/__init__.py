@@ -28,7 +28,7 @@ def register_scene(name: str, keys: tuple[str, ...] | None = None):
 
 def register_built_in() -> None:
     """Register the loaders that ship with flamerecon (imported on first use: they are heavy)."""
-    from flamerecon.scenes import nerf, opencv_calib, pinf, synthetic  # noqa: F401  (registers built-in loaders)
+    from flamerecon.scenes import nerf, opencv_calib, pinf, plume, synthetic  # noqa: F401  (registers built-in loaders)
 
 
 def load_scene(cfg) -> Scene:

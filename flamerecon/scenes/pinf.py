@@ -35,6 +35,7 @@ from flamerecon.scenes.calibration import (
 from flamerecon.scenes.frames import read_camera_frame
 from flamerecon.scenes.values import (
     FIELD_OF_VIEW,
+    POSITIVE,
     read_float,
     read_int,
     read_matrix,
@@ -79,7 +80,7 @@ def load_pinf(cfg) -> Scene:
     info, path = read_json_object(root, "info.json", "train_videos / test_videos")
     folder = path.parent
     frame = read_int(option(cfg, "frame", 0), "config", "scene.frame", 0)
-    names, images, Ks, w2cs, sources, holdout = [], [], [], [], [], []
+    names, images, Ks, w2cs, sources, holdout, rates = [], [], [], [], [], [], set()
     for where, entry, held in _camera_entries(info, path):
         if not isinstance(entry, dict):
             raise SceneError(f"{path}: {where}: must be an object")
@@ -95,6 +96,8 @@ def load_pinf(cfg) -> Scene:
             raise SceneError(
                 f"{path}: {where}.frame_num: frame {frame} is outside its {frame_num} frames"
             )
+        if entry.get("frame_rate") is not None:
+            rates.add(read_float(entry["frame_rate"], path, f"{where}.frame_rate", POSITIVE))
         image, source = read_camera_frame(folder, file_name, frame)
         check_image_size(image, H, W, source, path, f"{where}.camera_hw")
         f = 0.5 * W / math.tan(0.5 * angle)
@@ -108,4 +111,5 @@ def load_pinf(cfg) -> Scene:
     return make_scene(
         cfg, path, "scalarflow", names, images, Ks, w2cs, sources, pinf_box(info, path), holdout,
         frame, **{k: read_float(info[k], path, k) for k in ("near", "far") if k in info},
+        **({"frame_rate": rates.pop()} if len(rates) == 1 else {}),  # frames per second, when the cameras agree
     )
