@@ -284,6 +284,7 @@ def test_flow_writes_velocities_beside_the_frames(plume_sweep, capsys):
     TensorBoard scalars and the figures."""
     from flamerecon.outputs.velocity import load_velocity
 
+    shutil.rmtree(plume_sweep / "flow_figures", ignore_errors=True)  # the smoke call's figures (module fixture)
     assert call("flow", [str(plume_sweep), "--figures", "0"]) == 0, capsys.readouterr().err
     first = load_velocity(plume_sweep / "0")
     assert first.frame == 0 and first.frame_rate == 30.0 and first.record["next_frame"] == 1
