@@ -25,6 +25,7 @@ from flamerecon.fit.option_rules import (
     leaves,
 )
 from flamerecon.fit.refine_cameras import RefineOptions
+from flamerecon.fit.uncertainty_options import UncertaintyOptions
 from flamerecon.fit.weight_selection import SelectionOptions
 from flamerecon.plain import plain
 from flamerecon.solvers import SOLVERS
@@ -188,7 +189,7 @@ class SelectOptions:
 
 SECTIONS = {"grid": GridOptions, "projector": ProjectorOptions, "silhouette": SilhouetteOptions,
             "hull": HullOptions, "photometry": PhotometryOptions, "debias": DebiasOptions,
-            "calibration": RefineOptions, "select": SelectOptions}
+            "calibration": RefineOptions, "select": SelectOptions, "uncertainty": UncertaintyOptions}
 
 
 @dataclass(frozen=True)
@@ -205,6 +206,7 @@ class ReconstructionOptions:
     debias: DebiasOptions = field(default_factory=DebiasOptions)
     calibration: RefineOptions = field(default_factory=RefineOptions)
     select: SelectOptions = field(default_factory=SelectOptions)
+    uncertainty: UncertaintyOptions = field(default_factory=UncertaintyOptions)
     holdout: tuple | None = None  # view names or indices; None: the scene's default
     init: str | None = None  # a finished run's folder or density.npz to warm-start from
     seed: int = 0
