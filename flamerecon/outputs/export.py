@@ -31,7 +31,11 @@ from flamerecon.outputs.atomic import atomic_path, save_npz_atomic, write_json_a
 from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface, marching_cubes, write_obj, write_ply
 
 DENSITY_FILE = "density.npz"
+#: a run's confidence volume, in density.npz's format (:mod:`flamerecon.evaluate.uncertainty`)
+UNCERTAINTY_FILE = "uncertainty.npz"
 FORMATS = ("vti", "nrrd", "raw", "ply", "obj")
+#: the formats of a volume (the others are its iso-surface)
+VOLUME_FORMATS = ("vti", "nrrd", "raw")
 #: names for several formats at once
 ALIASES = {"all": FORMATS, "mesh": ("ply", "obj")}
 _RESERVED = ("density", "bbox_min", "bbox_max", "views")
@@ -376,9 +380,15 @@ def export_density(
 
 
 def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO) -> list[Path]:
-    """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``."""
+    """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``, and its
+    confidence volume ``uncertainty.npz``, when the run has one, as ``uncertainty.<format>``
+    for the volume formats (vti, nrrd, raw)."""
     run_dir = Path(run_dir)
-    return export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
+    written = export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
+    volumes = [f for f in _check_formats(formats) if f in VOLUME_FORMATS]
+    if volumes and (run_dir / UNCERTAINTY_FILE).is_file():
+        written += export_density(load_density(run_dir / UNCERTAINTY_FILE), run_dir / "uncertainty", volumes, iso)
+    return written
 
 
 def check_exporters(formats: Iterable[str]) -> None:

@@ -37,28 +37,37 @@ def to_display(image: torch.Tensor) -> torch.Tensor:
 TITLE_PX, BAR_PX, BAR_LABEL_PX = 14, 8, 40
 
 
-def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "") -> np.ndarray:
+def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "",
+                   sigma: torch.Tensor | None = None) -> np.ndarray:
     """A held-out view read without a legend: panels "rendered <view>" | "captured" |
-    "|error|" under a title strip of :data:`TITLE_PX`, the error (mean over channels, the
-    images' units) in the inferno colour map with a colour bar (0 at the bottom, the largest
-    error at the top) to its right: (TITLE_PX + H, 3 W + BAR_PX + BAR_LABEL_PX, 3) uint8,
-    from images (C, H, W) in [0, 1]."""
+    "|error|" (| "predicted sigma" with ``sigma``, the confidence image (C, H, W) of the
+    render: :mod:`flamerecon.evaluate.uncertainty`) under a title strip of :data:`TITLE_PX`;
+    the error and sigma (means over channels, the images' units) share one scale in the inferno
+    colour map, whose colour bar (0 at the bottom, the largest of them at the top) is to their
+    right: (TITLE_PX + H, n W + BAR_PX + BAR_LABEL_PX, 3) uint8 with n = 3 or 4, from images
+    (C, H, W) in [0, 1]."""
     r, c = to_display(rendered), to_display(captured)
     error = (rendered.detach().float().cpu().clamp(0, 1) - captured.detach().float().cpu()).abs().mean(0)
-    top = float(error.max())
+    spread = None if sigma is None else sigma.detach().float().cpu().mean(0)
+    top = max(float(error.max()), 0.0 if spread is None else float(spread.max()))
     H, W = error.shape
     panels = [(r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
               (c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8), to_rgb8(error[None], top or 1.0)]
+    titles = [f"rendered {view}".strip(), "captured", "|error|"]
+    if spread is not None:
+        panels.append(to_rgb8(spread[None], top or 1.0))
+        titles.append("predicted sigma")
     ramp = np.linspace(top or 1.0, 0.0, H, dtype=np.float32)[:, None].repeat(BAR_PX, 1)
     bar = np.zeros((H, BAR_PX + BAR_LABEL_PX, 3), np.uint8)
     bar[:, :BAR_PX] = to_rgb8(ramp[None], top or 1.0)
-    figure = np.zeros((TITLE_PX + H, 3 * W + bar.shape[1], 3), np.uint8)
+    n = len(panels)
+    figure = np.zeros((TITLE_PX + H, n * W + bar.shape[1], 3), np.uint8)
     figure[TITLE_PX:] = np.concatenate([*panels, bar], axis=1)
-    for n, title in enumerate((f"rendered {view}".strip(), "captured", "|error|")):
-        cv2.putText(figure, title, (n * W + 2, TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+    for k, title in enumerate(titles):
+        cv2.putText(figure, title, (k * W + 2, TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
                     (255, 255, 255), 1, cv2.LINE_AA)
     for y, text in ((TITLE_PX + 9, f"{top:.2g}"), (TITLE_PX + H - 2, "0")):
-        cv2.putText(figure, text, (3 * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
+        cv2.putText(figure, text, (n * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
                     (255, 255, 255), 1, cv2.LINE_AA)
     return figure
 

@@ -21,6 +21,7 @@ from flamerecon.device import resolve_device
 from flamerecon.errors import SolveDiverged
 from flamerecon.fit import reconstruct as core
 from flamerecon.fit.build import Setup, build, scene_grid
+from flamerecon.fit.ensemble import confidence
 from flamerecon.fit.levels import level_grids
 from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import Photometry, mean_of
@@ -112,8 +113,13 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         if "solve" in timing:
             timing["solve"] -= hook.monitor_seconds
         timing["monitoring"] = hook.monitor_seconds
+        conf = None
+        if options.uncertainty.enabled and hook.stop is None:
+            clock = time.perf_counter()
+            conf = confidence(rec.setup, rec.options, rec.fit.result.x)
+            timing["uncertainty"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.stop)
+        metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.stop, conf)
         timing["outputs"] = time.perf_counter() - clock
     finally:
         writer.close()
