@@ -16,7 +16,9 @@ Step by step: ``setup = fr.build(scene, options)`` (silhouettes, hull, rays, ope
 ``fr.fit(setup, options)``; ``fr.render(density, grid, cameras)``; ``fr.load_run(folder)``
 reads a CLI run folder back; ``fr.reconstruct_frames(scenes, options, fr.JointFramesOptions())``
 solves consecutive frames jointly; ``fr.reconstruct_motion(scenes, options, fr.MotionOptions(window=5))``
-reconstructs one frame with its neighbours' views carried onto it by their motion. Names are imported on first use.
+reconstructs one frame with its neighbours' views carried onto it by their motion;
+``conf = fr.confidence(rec)`` says what the cameras determine (``conf.volume()``, and
+``fr.uncertainty(conf, cameras)``: the predicted spread of any camera's render). Names are imported on first use.
 
 Every public function and class checks its arguments before any work: a wrong type raises
 :class:`~flamerecon.errors.ArgumentTypeError` (a ``TypeError``), a wrong shape or a value out
@@ -51,7 +53,8 @@ API = {
     "Reconstruction": "fit.reconstruct", "Fit": "fit.reconstruct", "SolveHook": "fit.reconstruct",
     "Stage": "fit.reconstruct", "fit": "fit", "reconstruct": "fit.reconstruct",
     "load_scene": "api", "render": "api", "score": "api", "make_solver": "api", "preset": "api",
-    "export": "api", "look_at_camera": "geometry.cameras", "orbit_cameras": "outputs.figures",
+    "export": "api", "confidence": "api", "uncertainty": "api", "Confidence": "evaluate.uncertainty",
+    "UncertaintyOptions": "fit.uncertainty_options", "look_at_camera": "geometry.cameras", "orbit_cameras": "outputs.figures",
     "Run": "run.folder", "load_run": "run.folder",
     "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
     "reconstruct_frames": "fit.joint_frames",
@@ -61,12 +64,12 @@ API = {
 # ``fit`` is the package flamerecon.fit itself, callable as flamerecon.fit.reconstruct.fit: a
 # package and a function cannot both be the attribute ``flamerecon.fit``.
 
-__all__ = ["DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOptions",
+__all__ = ["Confidence", "DebiasOptions", "Fit", "GridOptions", "HullOptions", "JointFramesOptions",
            "JointReconstruction", "MotionOptions", "MotionReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
            "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
            "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions", "Stage",
-           "VoxelGrid", "build", "export", "fit", "load_run", "load_scene", "look_at_camera", "make_problem",
-           "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames", "reconstruct_motion", "render", "score"]
+           "UncertaintyOptions", "VoxelGrid", "build", "confidence", "export", "fit", "load_run", "load_scene", "look_at_camera", "make_problem",
+           "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames", "reconstruct_motion", "render", "score", "uncertainty"]
 
 
 def __getattr__(name: str):
