@@ -158,12 +158,10 @@ class Confidence:
         return float(self.scale) * sum(parts.values()).sqrt()
 
     def footprint(self, cams: PinholeCamera) -> torch.Tensor:
-        """(B, H, W) bool: the pixels of ``cams`` whose ray meets the visual hull grown by the
-        shifts' whole cells (everywhere else the render and its predicted spread are 0: the
-        silhouettes of every training camera carved it)."""
-        grow = math.ceil(float(self.shift_voxels))
-        ones = torch.nn.functional.max_pool3d(self.hull[None, None].to(self.x.dtype), 2 * grow + 1, stride=1,
-                                              padding=grow)[0]
+        """(B, H, W) bool: the pixels of ``cams`` whose ray meets the visual hull, where the
+        reconstruction can be nonzero (the silhouettes of every training camera carved the
+        rest; only the shifts reach a fraction of a voxel beyond)."""
+        ones = self.hull[None].to(self.x.dtype)
         return render_image(ones, self.grid, cameras_to(cams, self.x.device), self.step)[:, 0] > 0
 
 
