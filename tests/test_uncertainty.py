@@ -25,6 +25,7 @@ from flamerecon.evaluate.uncertainty import (
     check_view,
     coverage,
     load_confidence,
+    neighbour_rms,
     predicted_psnr,
     ranks,
     save_confidence,
@@ -92,6 +93,15 @@ def test_errors_drawn_with_the_predicted_spread_are_covered_as_a_gaussian_is():
     assert found["spearman"] > 0.3 > abs(found["spearman_trivial"])
     assert predicted_psnr(torch.full((1, 4, 4), 0.1)) == pytest.approx(20.0)
     assert coverage(torch.tensor([0.0, 1.0, 3.0]), torch.ones(3), 2.0) == pytest.approx(2 / 3)
+
+
+def test_the_oracle_reads_the_error_around_a_pixel_not_at_it():
+    spike = torch.zeros(1, 20, 20)
+    spike[0, 10, 10] = 1.0
+    around = neighbour_rms(spike, 2.0)
+    assert float(around[0, 10, 10]) == 0.0 and float(around[0, 10, 11]) > 0.1
+    torch.testing.assert_close(neighbour_rms(torch.full((1, 9, 9), 0.3), 2.0), torch.full((1, 9, 9), 0.3),
+                               check_dtype=False)
 
 
 def test_leaving_a_camera_out_loosens_the_fit_to_that_camera(rec):

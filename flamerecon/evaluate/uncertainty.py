@@ -29,6 +29,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import kornia
 import numpy as np
 import torch
 from kornia.geometry.camera import PinholeCamera
@@ -204,6 +205,23 @@ def coverage(error: torch.Tensor, sigma: torch.Tensor, k: float) -> float:
     return float((error.abs() <= k * sigma).double().mean()) if error.numel() else math.nan
 
 
+#: the scales (pixels) of :func:`neighbour_rms`, the oracle :func:`check_view` reports
+ORACLE_PX = (2.0, 4.0)
+
+
+def neighbour_rms(error: torch.Tensor, px: float) -> torch.Tensor:
+    """(C, H, W): at each pixel the RMS of ``error`` (C, H, W) over its neighbours, weighted by
+    a Gaussian of ``px`` pixels with the pixel itself left out (reflected at the border). An
+    oracle that knows the error around a pixel but not at it: what a predictor of spread at
+    that resolution could at best do."""
+    size = min(2 * math.ceil(3 * px) + 1, 2 * min(error.shape[-2:]) - 1)
+    kernel = kornia.filters.get_gaussian_kernel1d(size, px).double()
+    centre = float(kernel[0, size // 2]) ** 2
+    blurred = kornia.filters.gaussian_blur2d(error.double().pow(2)[None], (size, size), (px, px),
+                                             border_type="reflect")[0]
+    return ((blurred - centre * error.double().pow(2)) / (1 - centre)).clamp_min(0).sqrt()
+
+
 def check_view(rendered: torch.Tensor, captured: torch.Tensor, sigma: torch.Tensor, domain: torch.Tensor,
                silhouette: torch.Tensor | None = None) -> dict[str, float]:
     """How a confidence image ``sigma`` (C, H, W) predicts the error of ``rendered`` (C, H, W,
@@ -218,7 +236,9 @@ def check_view(rendered: torch.Tensor, captured: torch.Tensor, sigma: torch.Tens
     - ``psnr`` (full frame, measured) and ``psnr_predicted`` (:func:`predicted_psnr`);
     - ``spearman_frame`` / ``spearman_frame_trivial``: over the full frame (mostly background,
       where both are 0); with ``silhouette`` (H, W) bool also ``spearman_silhouette`` /
-      ``spearman_silhouette_trivial`` inside it.
+      ``spearman_silhouette_trivial`` inside it;
+    - ``spearman_oracle_<n>px``: that of :func:`neighbour_rms` of the error itself at each scale
+      of :data:`ORACLE_PX` (a diagnosis, never a predictor: it reads the held-out image).
     """
     r = rendered.detach().double().cpu().clamp(0, 1)
     error = (r - captured.detach().double().cpu()).abs()
@@ -239,6 +259,8 @@ def check_view(rendered: torch.Tensor, captured: torch.Tensor, sigma: torch.Tens
         "spearman_frame_trivial": spearman(r, error),
         "domain_fraction": float(domain.double().mean()),
     }
+    for px in ORACLE_PX:
+        out[f"spearman_oracle_{px:g}px"] = spearman(neighbour_rms(error, px)[inside], error[inside])
     if silhouette is not None:
         sil = silhouette.cpu().expand_as(error)
         out.update(spearman_silhouette=spearman(s[sil], error[sil]),

@@ -26,8 +26,8 @@ class UncertaintyOptions:
 
     enabled: bool = False
     members: str = "cameras"
-    shift_voxels: float = 0.5
-    scale: float = 1.0
+    shift_voxels: float = 0.75
+    scale: float = 0.95
     iterations: int | None = None
     weight_factor: float = 2.0
 
