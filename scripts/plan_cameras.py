@@ -2,7 +2,7 @@
 
     python scripts/plan_cameras.py RUN_DIR [--orbit N] [--cameras FILE.json] [--noise S]
     python scripts/plan_cameras.py --check-synthetic [train.py overrides ...]
-    python scripts/plan_cameras.py --check-loo --frames 65 72 [train.py overrides ...]
+    python scripts/plan_cameras.py --check-loo --frames 65,72 [train.py overrides ...]
 
 RUN_DIR: ranks candidate cameras by the predicted reduction of the run's confidence volume's
 variance (:mod:`flamerecon.evaluate.camera_planning`; the confidence read from the run's
@@ -53,7 +53,7 @@ from flamerecon.outputs.camera_plan import camera_plan_figure
 from flamerecon.outputs.cameras_file import read_camera_file
 from flamerecon.outputs.figures import write_png
 from flamerecon.progress import Progress
-from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
+from flamerecon.run.cli import at_least, compose_train, frame_list, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
 
@@ -165,10 +165,11 @@ def check_loo(frames: list[int], overrides: list[str]) -> None:
         for v, name in enumerate(scene.views):
             rec = reconstruct(scene, options.replace(holdout=(name,)))
             conf = confidence(rec.setup, rec.options, rec.fit.result.x)
+            metrics = rec.score()
+            fitted = camera_subset(rec.scene.cameras, rec.setup.train)
             cam = camera_subset(rec.scene.cameras, [v])
-            share = float(variance_reduction(conf, cam, noise_of(rec.score()),
-                                               camera_subset(rec.scene.cameras, rec.setup.train))[0]) / total_variance(conf)
-            psnr = rec.score()["heldout"][name]["psnr"]
+            share = float(variance_reduction(conf, cam, noise_of(metrics), fitted)[0]) / total_variance(conf)
+            psnr = metrics["heldout"][name]["psnr"]
             predicted.append(share)
             measured.append(10 ** (-psnr / 10))
             print(f"  frame {frame} {name:<8} predicted {100 * share:6.2f}% of the variance; measured: the other "
@@ -188,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise", type=float, help="one-sigma noise of a new camera's pixels (image units)")
     parser.add_argument("--check-synthetic", action="store_true", help="check the ranking on the synthetic flame")
     parser.add_argument("--check-loo", action="store_true", help="check it by leave-one-view-out on a capture")
-    parser.add_argument("--frames", type=at_least(0), nargs="+", help="with --check-loo: scene.frame values")
+    parser.add_argument("--frames", type=frame_list, help="with --check-loo: comma-separated scene.frame values")
     args = parser.parse_args(argv)
     if args.check_synthetic and args.check_loo:
         parser.error("--check-synthetic and --check-loo: choose one")

@@ -6,7 +6,8 @@ Per frame (``scene.frame``; scene=scalarflow unless the overrides choose a scene
 train.py's overrides describe it, its confidence (``uncertainty.*``), and per held-out camera:
 the Spearman correlation of the predicted spread with the absolute error, per pixel whose ray
 meets the visual hull (everywhere else both are 0), beside that of the rendered intensity (the
-trivial predictor); the coverage of the 1- and 2-sigma bands there (the trivial predictor's with
+trivial predictor) and of an oracle that knows the error around each pixel within 2 px (a
+diagnosis: what a spread at that resolution could at best do); the coverage of the 1- and 2-sigma bands there (the trivial predictor's with
 its gain fitted to this very view); the measured and the predicted full-frame PSNR. ``--loo``
 holds out every camera in turn (leave-one-view-out) instead of the run's held-out ones. Writes
 FILE.json: ``{"frames": {"65": {"spearman", "spearman_trivial", "coverage_1sigma",
@@ -41,8 +42,8 @@ from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
 
 #: the columns of the table (and the figures averaged into a frame's entry)
-COLUMNS = ("spearman", "spearman_trivial", "coverage_1sigma", "coverage_2sigma", "coverage_2sigma_trivial",
-           "psnr", "psnr_predicted")
+COLUMNS = ("spearman", "spearman_trivial", "spearman_oracle_2px", "coverage_1sigma", "coverage_2sigma",
+           "coverage_2sigma_trivial", "psnr", "psnr_predicted")
 
 
 def frame_number(text: str) -> int:
