@@ -37,20 +37,13 @@ from flamerecon.fit.reconstruct import reconstruct
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.operators.projector import render_image
 from flamerecon.outputs.atomic import write_json_atomic
-from flamerecon.run.cli import compose_train, output_file, run_script, script_parser
+from flamerecon.run.cli import at_least, compose_train, output_file, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
 
 #: the columns of the table (and the figures averaged into a frame's entry)
 COLUMNS = ("spearman", "spearman_trivial", "spearman_oracle_2px", "coverage_1sigma", "coverage_2sigma",
            "coverage_2sigma_trivial", "psnr", "psnr_predicted")
-
-
-def frame_number(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise ValueError(f"--frames: got {value}; frames are numbers >= 0")
-    return value
 
 
 def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict], dict[str, float]]:
@@ -112,7 +105,7 @@ def line(frame, view: str, r: dict, cost: str = "") -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
-    parser.add_argument("--frames", type=frame_number, nargs="+", required=True, help="scene.frame values")
+    parser.add_argument("--frames", type=at_least(0), nargs="+", required=True, help="scene.frame values")
     parser.add_argument("--out", type=output_file, required=True, help="the JSON file to write")
     parser.add_argument("--loo", action="store_true", help="hold out every camera in turn")
     args = parser.parse_args(argv)

@@ -107,6 +107,7 @@ CALLS = {
                       r"cam00: PSNR"),
     "motion_eval": (lambda t, run, dump: [*SYNTHETIC, "--frames", "1", "--windows", "1,3", "--decay", "1",
                                           "--static"], r"mean +3 density s=0.01 decay=1 .*\n.*static"),
+    "plan_cameras": (lambda t, run, dump: [str(copied(run, t)), "--orbit", "6"], r"rank camera .*\n +1 orbit0\d "),
     "preconditioning_study": (lambda t, run, dump: ["--grid", "8", "--iters", "20", "--variants", "lipschitz",
                                                     "--dump", str(dump)], r"lipschitz +"),
     "refine_cameras": (lambda t, run, dump: [*SYNTHETIC, "calibration.rounds=1", "--modes", "pose",
@@ -114,6 +115,8 @@ CALLS = {
     "render": (lambda t, run, dump: [str(run), "--camera", "orbit:0,10", "--width", "16", "--height", "12",
                                      "--out", str(t / "renders")], r"orbit_az0_el10_.*\.png"),
     "sequence_benchmark": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC], r"2 frames in .* per minute"),
+    "uncertainty_check": (lambda t, run, dump: ["--frames", "0", "--out", str(t / "new" / "u.json"), *SYNTHETIC],
+                          r"    0 cam04 .*\n.*volume: rank correlation"),
     "temporal_eval": (lambda t, run, dump: [*SYNTHETIC, "scene.frames=[0,1]", "--weights", "0:0", "--no-baseline"],
                       r"joint l2=0 tv=0 .* +1 "),
 }
@@ -143,7 +146,7 @@ def test_help_prints_the_whole_docstring(name, capsys):
 def test_a_tiny_real_call(name, tmp_path, capsys, request, monkeypatch):
     monkeypatch.chdir(tmp_path)  # default output folders land here
     make, shows = CALLS[name]
-    run = request.getfixturevalue("finished_run") if name in ("evaluate", "export", "render") else None
+    run = request.getfixturevalue("finished_run") if name in ("evaluate", "export", "render", "plan_cameras") else None
     dump = request.getfixturevalue("benchmark_dump") if name in ("benchmark", "preconditioning_study") else None
     code = call(name, make(tmp_path, run, dump))
     out, err = capsys.readouterr()
@@ -201,6 +204,11 @@ BAD = [
     ("assemble", ["SWEEP", "--no-such-flag"], r"unrecognized arguments: --no-such-flag"),
     ("export", ["RUN", "--iso", "x"], r"argument --iso: invalid float value: 'x'"),
     ("preconditioning_study", ["--grid", "x"], r"argument --grid: invalid int value: 'x'"),
+    ("uncertainty_check", ["--frames", "-1", "--out", "u.json"], r"argument --frames: got '-1'; give an integer >= 0"),
+    ("uncertainty_check", ["--frames", "1", "--out", "TMP"], r"argument --out: .*: is a folder; give a file name"),
+    ("plan_cameras", [], r"give one RUN_DIR"),
+    ("plan_cameras", ["--check-loo"], r"--check-loo needs --frames"),
+    ("plan_cameras", ["RUN", "--noise", "-1"], r"--noise: got -1.0; give a number > 0"),
 ]
 
 
