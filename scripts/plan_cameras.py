@@ -91,11 +91,7 @@ def plan_run(run_dir: Path, orbit: int, cameras_file: Path | None, noise: float 
     azimuths = azimuths_of(cams, rig, centre)
     total = total_variance(conf)
     progress = Progress("camera plan", cams.batch_size, unit="candidate")
-    reductions = []
-    for b in range(cams.batch_size):
-        reductions.append(float(variance_reduction(conf, camera_subset(cams, [b]), noise, rig)[0]))
-        progress.update(b + 1, names[b])
-    reductions = torch.tensor(reductions, dtype=torch.float64)
+    reductions = variance_reduction(conf, cams, noise, rig, lambda b: progress.update(b + 1, names[b]))
     order = ranked(reductions)
     print(f"{run_dir}: {len(names)} candidates; total variance of the confidence volume {total:.4g}; "
           f"pixel noise {noise:.4g}")

@@ -77,12 +77,13 @@ def removed(d: torch.Tensor, Y: torch.Tensor, noise: float) -> torch.Tensor:
 
 
 def variance_reduction(conf: Confidence, cams: PinholeCamera, noise: float,
-                       fitted: PinholeCamera | None = None) -> torch.Tensor:
+                       fitted: PinholeCamera | None = None, progress=None) -> torch.Tensor:
     """(B,) float64: for each camera of ``cams``, the predicted reduction of the confidence
     volume's total variance (sum over voxels and channels of its square, density units squared)
     if that camera alone were added to the ``fitted`` cameras (assimilated first; None: none),
     pixels observed with one-sigma ``noise`` (image units, > 0); see the module's docstring.
-    Channels are independent observations of their own deviations."""
+    Channels are independent observations of their own deviations. ``progress(b)`` is called
+    after each camera."""
     if not noise > 0:
         raise ValueError(f"variance_reduction: noise must be > 0, got {noise}")
     devs = weighted_deviations(conf)
@@ -101,6 +102,8 @@ def variance_reduction(conf: Confidence, cams: PinholeCamera, noise: float,
     for b in range(B):
         Y = voxel_observations(conf, devs, where, camera_subset(cams, [b]))
         out[b] = float(removed(D, torch.cat([base, Y], 2), noise).sum() - before)
+        if progress is not None:
+            progress(b)
     return out
 
 
