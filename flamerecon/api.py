@@ -33,6 +33,7 @@ from flamerecon.outputs.export import (
     Density,
     export_density,
     load_density,
+    sigma_names,
 )
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.resources import config_dir
@@ -204,4 +205,5 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
         volume = Density(result.density.detach().cpu().numpy().astype(np.float32), np.array(grid.bbox_min),
                          np.array(grid.bbox_max), [result.scene.views[v] for v in views])
     Path(stem).parent.mkdir(parents=True, exist_ok=True)
-    return export_density(volume, stem, formats, iso)
+    names = sigma_names(volume.density.shape[0]) if isinstance(result, Confidence) else None
+    return export_density(volume, stem, formats, iso, names)

@@ -6,8 +6,10 @@ deviations, the files written and read back, the API's door, and the camera plan
 
 from __future__ import annotations
 
+import json
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -34,6 +36,7 @@ from flamerecon.evaluate.uncertainty import (
 )
 from flamerecon.fit.ensemble import solve_ensemble, weight_variants
 from flamerecon.geometry.cameras import camera_subset
+from tests.helpers import HELDOUT, TRAIN, CliRun
 
 SCENE = {"width": 48, "height": 36, "n_cameras": 5, "phantom_resolution": 32}
 
@@ -202,3 +205,22 @@ def test_a_camera_beside_a_fitted_one_adds_less_than_one_in_the_gap(rec, conf):
     assert float(gained[0]) < float(gained.max())
     alone = variance_reduction(conf, camera_subset(cams, [0]), 0.01)
     assert float(alone[0]) > float(gained[0])  # unconditioned, it claims what the fitted camera already saw
+
+
+@pytest.mark.e2e
+def test_a_run_with_the_confidence_writes_it_everywhere_it_is_read(tmp_path):
+    run = tmp_path / "run"
+    done = CliRun(run, "uncertainty.enabled=true", "export=raw", "threads=1").result()
+    assert done.returncode == 0, done.stderr
+    assert "predicted [dB]" in done.stdout and "uncertainty" in done.stdout
+    metrics = json.loads((run / "metrics.json").read_text())
+    held = metrics["heldout"][HELDOUT[0]]
+    assert math.isfinite(held["psnr_predicted"]) and metrics["uncertainty"]["members"] == [f"cameras:{v}" for v in TRAIN]
+    header = json.loads((run / "uncertainty.raw.json").read_text())
+    assert header["channels"] == ["R_sigma", "G_sigma", "B_sigma"]
+    figure = cv2.imread(str(run / "renders" / f"{HELDOUT[0]}.png"))
+    assert figure.shape[1] > 4 * 48  # render | captured | error | predicted sigma, and the colour bar
+    loaded = fr.confidence(fr.load_run(run))  # read back from uncertainty.npz, not solved again
+    assert loaded.labels == metrics["uncertainty"]["members"]
+    sigma = fr.uncertainty(loaded, camera_subset(fr.load_run(run).scene.cameras, [4]))
+    assert predicted_psnr(sigma[0]) == pytest.approx(held["psnr_predicted"], abs=1e-3)

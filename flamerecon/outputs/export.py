@@ -76,6 +76,11 @@ def channel_names(num_channels: int) -> list[str]:
     return [f"c{c}" for c in range(num_channels)]
 
 
+def sigma_names(num_channels: int) -> list[str]:
+    """The channel names of a confidence volume: each density channel's, ``_sigma`` appended."""
+    return [f"{name}_sigma" for name in channel_names(num_channels)]
+
+
 def density_path(run_dir_or_file: str | os.PathLike) -> Path:
     """``RUN_DIR/density.npz`` for a run folder, the path itself for a file."""
     path = Path(run_dir_or_file)
@@ -355,21 +360,23 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
 
 
 def export_density(
-    volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO
+    volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO,
+    names: Sequence[str] | None = None,
 ) -> list[Path]:
     """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.ply``
     and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
-    see :func:`~flamerecon.outputs.mesh.iso_surface`)."""
+    see :func:`~flamerecon.outputs.mesh.iso_surface`); ``names``: the channels' (default
+    :func:`channel_names`)."""
     formats = _check_formats(formats)
     stem = Path(out_stem)
     args = (volume.density, volume.bbox_min, volume.bbox_max)
     written: list[Path] = []
     if "vti" in formats:
-        written.append(write_vti(stem.with_name(stem.name + ".vti"), *args))
+        written.append(write_vti(stem.with_name(stem.name + ".vti"), *args, names))
     if "nrrd" in formats:
-        written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args))
+        written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args, names))
     if "raw" in formats:
-        written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, views=volume.views))
+        written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, names, views=volume.views))
     meshes = [(f, w) for f, w in (("ply", write_ply), ("obj", write_obj)) if f in formats]
     if meshes:
         vertices, faces = iso_surface(*args, iso=iso)
@@ -387,7 +394,8 @@ def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS, iso
     written = export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
     volumes = [f for f in _check_formats(formats) if f in VOLUME_FORMATS]
     if volumes and (run_dir / UNCERTAINTY_FILE).is_file():
-        written += export_density(load_density(run_dir / UNCERTAINTY_FILE), run_dir / "uncertainty", volumes, iso)
+        sigma = load_density(run_dir / UNCERTAINTY_FILE)
+        written += export_density(sigma, run_dir / "uncertainty", volumes, iso, sigma_names(sigma.density.shape[0]))
     return written
 
 
