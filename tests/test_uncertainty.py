@@ -36,7 +36,8 @@ from flamerecon.evaluate.uncertainty import (
 )
 from flamerecon.fit.ensemble import solve_ensemble, weight_variants
 from flamerecon.geometry.cameras import camera_subset
-from tests.helpers import HELDOUT, TRAIN, CliRun
+from flamerecon.run.pipeline import reconstruct
+from tests.helpers import HELDOUT, TRAIN, CliRun, tiny_config
 
 SCENE = {"width": 48, "height": 36, "n_cameras": 5, "phantom_resolution": 32}
 
@@ -224,3 +225,9 @@ def test_a_run_with_the_confidence_writes_it_everywhere_it_is_read(tmp_path):
     assert loaded.labels == metrics["uncertainty"]["members"]
     sigma = fr.uncertainty(loaded, camera_subset(fr.load_run(run).scene.cameras, [4]))
     assert predicted_psnr(sigma[0]) == pytest.approx(held["psnr_predicted"], abs=1e-3)
+
+
+def test_frames_solved_jointly_refuse_the_confidence_before_any_work(tmp_path):
+    with pytest.raises(ConfigError, match=r"^uncertainty.enabled: .*scene.frames"):
+        reconstruct(tiny_config("scene.frames=[0,1]", "uncertainty.enabled=true"), tmp_path / "run")
+    assert not (tmp_path / "run" / "density.npz").exists()

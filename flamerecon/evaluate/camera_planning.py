@@ -41,6 +41,7 @@ def weighted_deviations(conf: Confidence) -> list[torch.Tensor]:
     members of its kind: the sum of their squares is the confidence volume squared."""
     out = []
     for _, devs in conf.deviations():
+        devs = list(devs)
         weight = float(conf.scale) / len(devs) ** 0.5
         out += [weight * d for d in devs]
     return out

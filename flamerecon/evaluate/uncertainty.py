@@ -74,12 +74,24 @@ def shifted(volume: torch.Tensor, axis: int, voxels: float) -> torch.Tensor:
     return out if part == 0 else (1 - part) * out + part * translated(volume, axis, whole + 1)
 
 
-def shift_deviations(volume: torch.Tensor, voxels: float) -> list[torch.Tensor]:
+def shift_deviations(volume: torch.Tensor, voxels: float):
     """The six deviations (C, nz, ny, nx) of ``volume`` moved by ``voxels`` along x, y and z,
-    both ways, from ``volume``; none for 0."""
+    both ways, from ``volume``, one at a time (an iterator); none for 0."""
     if voxels == 0:
-        return []
-    return [shifted(volume, axis, sign * voxels) - volume for axis in (3, 2, 1) for sign in (1, -1)]
+        return
+    for axis in (3, 2, 1):
+        for sign in (1, -1):
+            yield shifted(volume, axis, sign * voxels) - volume
+
+
+def mean_square(values) -> torch.Tensor:
+    """The mean of the squares of the tensors ``values`` (an iterable, read once), summed one
+    at a time."""
+    total, count = None, 0
+    for v in values:
+        total = v.pow(2) if total is None else total.add_(v.pow(2))
+        count += 1
+    return total / count
 
 
 @dataclass
@@ -123,18 +135,19 @@ class Confidence:
         return self.grid.dense(self.x, self.voxel_index)
 
     def deviations(self):
-        """(kind, [deviation (C, nz, ny, nx), ...]) per kind that has members."""
+        """(kind, iterator over its deviations (C, nz, ny, nx)) per kind that has members; each
+        deviation is made when it is read, so memory holds one at a time."""
+        density = self.density
         for kind in KINDS[:2]:
             chosen = [m for m, g in zip(self.members, self.groups) if g == kind]
             if chosen:
-                yield kind, [self.grid.dense(m - self.x, self.voxel_index) for m in chosen]
-        shifts = shift_deviations(self.density, float(self.shift_voxels))
-        if shifts:
-            yield "shift", shifts
+                yield kind, (self.grid.dense(m - self.x, self.voxel_index) for m in chosen)
+        if float(self.shift_voxels):
+            yield "shift", shift_deviations(density, float(self.shift_voxels))
 
     def variance_parts(self) -> dict[str, torch.Tensor]:
         """Per kind, the mean squared deviation (C, nz, ny, nx) of its members, unscaled."""
-        return {kind: torch.stack(devs).pow(2).mean(0) for kind, devs in self.deviations()}
+        return {kind: mean_square(devs) for kind, devs in self.deviations()}
 
     def volume(self) -> torch.Tensor:
         """The confidence volume (C, nz, ny, nx): the predicted one-sigma spread of each voxel's
@@ -146,7 +159,7 @@ class Confidence:
     def image_parts(self, cams: PinholeCamera) -> dict[str, torch.Tensor]:
         """Per kind, the mean squared rendered deviation (B, C, H, W) through ``cams``, unscaled."""
         cams = cameras_to(cams, self.x.device)
-        return {kind: torch.stack([render_image(d, self.grid, cams, self.step) for d in devs]).pow(2).mean(0)
+        return {kind: mean_square(render_image(d, self.grid, cams, self.step) for d in devs)
                 for kind, devs in self.deviations()}
 
     def image(self, cams: PinholeCamera) -> torch.Tensor:

@@ -18,7 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from flamerecon.device import resolve_device
-from flamerecon.errors import SolveDiverged
+from flamerecon.errors import ConfigError, SolveDiverged
 from flamerecon.fit import reconstruct as core
 from flamerecon.fit.build import Setup, build, scene_grid
 from flamerecon.fit.ensemble import confidence
@@ -95,6 +95,10 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     """
     if cfg.scene.get("frames") is not None:  # consecutive frames solved jointly (time as a prior)
         from flamerecon.run.joint_frames import run_frames
+
+        if cfg.get("uncertainty", {}).get("enabled"):
+            raise ConfigError("uncertainty.enabled: the confidence is computed for one frame's reconstruction, "
+                              "not for scene.frames solved jointly; run the frames one by one, or leave it off")
 
         return logged(run_frames(cfg, run_dir, resume))
     options = options_from_config(cfg)
