@@ -16,9 +16,10 @@ Step by step: ``setup = fr.build(scene, options)`` (silhouettes, hull, rays, ope
 ``fr.fit(setup, options)``; ``fr.render(density, grid, cameras)``; ``fr.load_run(folder)``
 reads a CLI run folder back; ``fr.reconstruct_frames(scenes, options, fr.JointFramesOptions())``
 solves consecutive frames jointly; ``fr.reconstruct_motion(scenes, options, fr.MotionOptions(window=5))``
-reconstructs one frame with its neighbours' views carried onto it by their motion;
-``conf = fr.confidence(rec)`` says what the cameras determine (``conf.volume()``, and
-``fr.uncertainty(conf, cameras)``: the predicted spread of any camera's render). Names are imported on first use.
+reconstructs one frame with its neighbours' views carried onto it by their motion; ``v = fr.view(rec)``
+serves it to a browser (``v.url``; ``v.stop()``); ``conf = fr.confidence(rec)`` says what the
+cameras determine (``conf.volume()``, and ``fr.uncertainty(conf, cameras)``: the predicted spread
+of any camera's render). Names are imported on first use.
 
 Every public function and class checks its arguments before any work: a wrong type raises
 :class:`~flamerecon.errors.ArgumentTypeError` (a ``TypeError``), a wrong shape or a value out
@@ -59,7 +60,8 @@ API = {
     "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
     "reconstruct_frames": "fit.joint_frames",
     "MotionOptions": "fit.motion", "MotionReconstruction": "fit.motion", "reconstruct_motion": "fit.motion",
-    "Problem": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes",
+    "Problem": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes", "view": "api",
+    "framing_camera": "api", "save_image": "api",
 }
 # ``fit`` is the package flamerecon.fit itself, callable as flamerecon.fit.reconstruct.fit: a
 # package and a function cannot both be the attribute ``flamerecon.fit``.
@@ -68,8 +70,9 @@ __all__ = ["Confidence", "DebiasOptions", "Fit", "GridOptions", "HullOptions", "
            "JointReconstruction", "MotionOptions", "MotionReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
            "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
            "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions", "Stage",
-           "UncertaintyOptions", "VoxelGrid", "build", "confidence", "export", "fit", "load_run", "load_scene", "look_at_camera", "make_problem",
-           "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames", "reconstruct_motion", "render", "score", "uncertainty"]
+           "UncertaintyOptions", "VoxelGrid", "build", "confidence", "export", "fit", "framing_camera", "load_run",
+           "load_scene", "look_at_camera", "make_problem", "make_solver", "orbit_cameras", "preset", "reconstruct",
+           "reconstruct_frames", "reconstruct_motion", "render", "save_image", "score", "uncertainty", "view"]
 
 
 def __getattr__(name: str):

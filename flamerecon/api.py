@@ -15,6 +15,7 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_value
+from flamerecon.device import resolve_device
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.uncertainty import Confidence, load_confidence
 from flamerecon.fit.build import build, hull_values
@@ -25,7 +26,8 @@ from flamerecon.fit.reconstruct import Reconstruction
 from flamerecon.fit.uncertainty_options import UncertaintyOptions
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
-from flamerecon.operators.projector import render_image
+from flamerecon.operators.projector import camera_rays, integrate_dense, render_image
+from flamerecon.outputs.atomic import make_folder
 from flamerecon.outputs.export import (
     ALIASES,
     FORMATS,
@@ -35,8 +37,10 @@ from flamerecon.outputs.export import (
     load_density,
     sigma_names,
 )
+from flamerecon.outputs.figures import _angles, orbit_cameras, write_png
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.resources import config_dir
+from flamerecon.rules import integer, number
 from flamerecon.run.folder import Run
 from flamerecon.scenes import SCENE_KEYS, SCENE_LOADERS, Scene, register_built_in
 from flamerecon.scenes import load_scene as load_scene_node
@@ -104,7 +108,10 @@ def render(volume: torch.Tensor, grid: VoxelGrid, cameras: PinholeCamera, step: 
     """Emission-only renders of a density (C, nz, ny, nx) on ``grid`` through kornia
     ``cameras`` (B of them, one size; :func:`flamerecon.look_at_camera`,
     :func:`flamerecon.orbit_cameras` or a scene's): (B, C, H, W) float32 line integrals on the density's
-    device, ``step`` in voxels (>= 0.01, as ``projector.step``)."""
+    device, ``step`` in voxels (>= 0.01, as ``projector.step``).
+
+    Differentiable: for a ``volume`` that requires grad (and grad enabled) the renders keep the
+    autograd graph, every pixel marched (a zero voxel's gradient counts too); otherwise only the pixels the nonzero density projects onto are marched."""
     instance("render.grid", grid, VoxelGrid)
     volume = tensor("render.volume", volume, "(C, nz, ny, nx) on the grid", shape=(None, *grid.shape), finite=True)
     instance("render.cameras", cameras, PinholeCamera, "a kornia PinholeCamera batch")
@@ -112,7 +119,13 @@ def render(volume: torch.Tensor, grid: VoxelGrid, cameras: PinholeCamera, step: 
     if len(sizes) != 1:
         raise wrong_value("render.cameras", sorted(sizes), "a batch of at least one camera, all of one image size")
     value("render.step", step, RULES["projector.step"].check)
-    return render_image(volume.float(), grid, cameras_to(cameras, volume.device), float(step))
+    cams = cameras_to(cameras, volume.device)
+    if volume.requires_grad and torch.is_grad_enabled():
+        (H, W), = sizes
+        rays, _ = camera_rays(cams)
+        pixels = integrate_dense(volume.float(), grid, rays, float(step))  # (B H W, C)
+        return pixels.T.reshape(volume.shape[0], cams.batch_size, H, W).transpose(0, 1)
+    return render_image(volume.float(), grid, cams, float(step))
 
 
 def score(result: Reconstruction | Run) -> dict:
@@ -183,6 +196,9 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
     instance("export.result", result, (Reconstruction, Run, Confidence, str, os.PathLike),
              "a Reconstruction, a Run, a Confidence (its volume), or a run folder or density.npz")
     instance("export.stem", stem, (str, os.PathLike), "a path without suffix")
+    if not Path(stem).name or "\0" in str(stem) or Path(stem).is_dir():
+        raise wrong_value("export.stem", stem, "a file path without suffix (e.g. 'out/flame'), not empty, not a folder, "
+                          "without NUL characters")
     value("export.iso", iso, RULES["export.iso"].check)
     names = [formats] if isinstance(formats, str) else formats
     instance("export.formats", names, Iterable, "a format name or a list of them")
@@ -204,6 +220,117 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
         grid = result.grid
         volume = Density(result.density.detach().cpu().numpy().astype(np.float32), np.array(grid.bbox_min),
                          np.array(grid.bbox_max), [result.scene.views[v] for v in views])
-    Path(stem).parent.mkdir(parents=True, exist_ok=True)
+    if Path(stem).parent.exists() and not Path(stem).parent.is_dir():
+        raise wrong_value("export.stem", stem, f"a path in a folder ({Path(stem).parent} is a file)")
+    make_folder(Path(stem).parent)
     names = sigma_names(volume.density.shape[0]) if isinstance(result, Confidence) else None
     return export_density(volume, stem, formats, iso, names)
+
+
+def view(result, port: int = 8080, host: str = "127.0.0.1", device: str = "auto"):
+    """Serve ``result`` (a Reconstruction, a loaded Run, a run folder or a multirun folder) to a
+    browser, as ``flamerecon view`` does, and return the :class:`~flamerecon.viewer.server.Viewer`
+    while it serves in the background: open its ``url``, call its ``stop()`` when done. Needs
+    ``pip install 'flamerecon[view]'``."""
+    instance("view.result", result, (Reconstruction, Run, str, os.PathLike),
+             "a Reconstruction, a Run, or a run or multirun folder")
+    value("view.port", port, integer(1, 65535))
+    instance("view.host", host, str, "an address such as 127.0.0.1")
+    instance("view.device", device, (str, torch.device), "a device name (auto, cpu, cuda)")
+    resolve_device(device, "view.device")
+    from flamerecon.viewer.server import Viewer
+
+    viewer = Viewer(result, host, port, str(device))
+    print(f"flamerecon view: open {viewer.url}")
+    return viewer
+
+
+RULE_FOV = number(0.0, 180.0, lo_open=True, hi_open=True)
+
+
+def framing_camera(result, azimuth_deg=0.0, elevation_deg: float = 15.0, width: int = 320, height: int = 240,
+                   fov_deg: float = 40.0) -> PinholeCamera:
+    """Cameras that frame the flame of ``result`` (a Reconstruction or a loaded Run): on a circle
+    around the density's support (voxels above 1% of the peak), at the distance where it fills
+    the ``fov_deg`` (vertical) view, upright as the scene's cameras stand (their mean up
+    direction); one per azimuth (degrees, 0 on the side of the first camera). A kornia batch
+    for :func:`render`: ``fr.render(rec.density, rec.grid, fr.framing_camera(rec, [0, 90]))``."""
+    instance("framing_camera.result", result, (Reconstruction, Run), "a Reconstruction or a Run")
+    density = tensor("framing_camera.result.density", result.density, "(C, nz, ny, nx) on the result's grid",
+                     shape=(None, *result.grid.shape), finite=True)
+    value("framing_camera.width", width, integer(1))
+    value("framing_camera.height", height, integer(1))
+    value("framing_camera.fov_deg", fov_deg, RULE_FOV)
+    value("framing_camera.elevation_deg", elevation_deg, number(-90.0, 90.0))
+    lo, hi = np.asarray(result.grid.bbox_min, float), np.asarray(result.grid.bbox_max, float)
+    near, far = emission_box(density.detach().float().cpu().numpy(), lo, hi)
+    target = (near + far) / 2
+    rotations = result.scene.cameras.extrinsics[:, :3, :3].double().cpu().numpy()
+    up = -rotations[:, 1, :].mean(0)
+    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 0 else np.array([0.0, 1.0, 0.0])
+    toward = -rotations[0, 2, :]  # from the box towards the first camera
+    axis = _ground_axis(up)
+    azimuths = _angles("framing_camera.azimuth_deg", azimuth_deg)
+    azimuths = azimuths + float(np.degrees(np.arctan2(toward @ np.cross(up, axis), toward @ axis)))
+    probe = orbit_cameras(azimuths, elevation_deg, 1.0, target, width, height, fov_deg, up)
+    distance = _fitting_distance(probe.extrinsics.double().numpy(), near, far, target, width, height, fov_deg)
+    return orbit_cameras(azimuths, elevation_deg, distance, target, width, height, fov_deg, up)
+
+
+def emission_box(density: np.ndarray, lo: np.ndarray, hi: np.ndarray, share: float = 0.98
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The world box (min xyz, max xyz) holding the middle ``share`` of the emission (channels
+    summed) along each axis: where the light is, faint haze left out; the whole box when empty."""
+    total = np.clip(density.sum(0), 0, None)  # (nz, ny, nx)
+    if total.sum() <= 0:
+        return lo, hi
+    size = (hi - lo) / np.array(total.shape[::-1])
+    near, far = lo.copy(), hi.copy()
+    for axis in range(3):  # x, y, z
+        profile = total.sum(axis=tuple(a for a in range(3) if a != 2 - axis))
+        cumulative = np.cumsum(profile) / profile.sum()
+        first = int(np.searchsorted(cumulative, (1 - share) / 2))
+        last = int(np.searchsorted(cumulative, 1 - (1 - share) / 2))
+        near[axis], far[axis] = lo[axis] + first * size[axis], lo[axis] + (last + 1) * size[axis]
+    return near, far
+
+
+def _fitting_distance(w2c: np.ndarray, near: np.ndarray, far: np.ndarray, target: np.ndarray, width: int,
+                      height: int, fov_deg: float, margin: float = 1.1) -> float:
+    """The distance from ``target`` at which every corner of the box [near, far] lies inside
+    the image of each camera orientation of ``w2c`` (B, 4, 4), with ``margin`` to spare."""
+    corners = np.array([[(near, far)[(p >> a) & 1][a] for a in range(3)] for p in range(8)]) - target
+    focal = 0.5 * height / np.tan(np.radians(fov_deg) / 2)
+    need = 0.0
+    for rotation in w2c[:, :3, :3]:
+        x, y, z = corners @ rotation.T[:, 0], corners @ rotation.T[:, 1], corners @ rotation.T[:, 2]
+        need = max(need, float(np.max(np.abs(x) * margin * focal / (width / 2) - z)),
+                   float(np.max(np.abs(y) * margin * focal / (height / 2) - z)))
+    return max(need, 1e-6 + float(np.max(-corners @ w2c[0, 2, :3])))
+
+
+def _ground_axis(up: np.ndarray) -> np.ndarray:
+    """orbit_cameras' azimuth 0: the world axis least along ``up``, flattened onto the ground."""
+    axis = np.eye(3)[min((2, 0, 1), key=lambda a: abs(up[a]))]
+    axis = axis - (axis @ up) * up
+    return axis / np.linalg.norm(axis)
+
+
+def save_image(path: str | os.PathLike, image: torch.Tensor, vmax: float | None = 1.0) -> Path:
+    """Write a rendered or captured image (C, H, W) (or a batch of one) as a PNG, atomically:
+    three channels in colour, one in grey, ``vmax`` shown white (1: the captures' scale, at which
+    a render looks like its capture; None: the image's own maximum). Returns the path."""
+    instance("save_image.path", path, (str, os.PathLike), "a file path ending in .png")
+    if not str(path).lower().endswith(".png"):
+        raise wrong_value("save_image.path", path, "a file path ending in .png")
+    image = tensor("save_image.image", image, "(C, H, W) or (1, C, H, W)", finite=True)
+    if image.ndim == 4 and image.shape[0] == 1:
+        image = image[0]
+    if image.ndim != 3 or image.shape[0] not in (1, 3):
+        raise wrong_value("save_image.image", image, "an image (C, H, W) with C = 1 or 3, or a batch of one")
+    if vmax is not None:
+        value("save_image.vmax", vmax, number(0.0, lo_open=True))
+    top = float(image.max()) if vmax is None else float(vmax)
+    scaled = (image.detach().float().cpu() / (top or 1.0)).clamp(0, 1).expand(3, -1, -1)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return write_png(path, np.ascontiguousarray((scaled.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)))

@@ -82,6 +82,9 @@ def tensor(name: str, given, dims: str, ndim: int | None = None, shape: tuple | 
         given = torch.from_numpy(given)
     if not isinstance(given, torch.Tensor):
         raise wrong_type(name, given, f"a tensor {dims}" + (" or None" if null else ""))
+    if given.is_meta:
+        raise ArgumentError(f"{name}: got a tensor on the 'meta' device, which holds no values; give {name} with "
+                            "its values (on cpu or cuda)")
     kinds = {"floating": given.is_floating_point(), "any": True, "bool": given.dtype == torch.bool,
              "integer": not given.is_floating_point() and not given.is_complex() and given.dtype != torch.bool}
     if not kinds[kind]:

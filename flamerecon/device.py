@@ -11,6 +11,7 @@ import time
 import torch
 
 from flamerecon.errors import ArgumentError
+from flamerecon.machine import cores
 
 
 def resolve_device(name: str | torch.device, field: str = "device") -> torch.device:
@@ -66,13 +67,18 @@ def busy_cores(reads: int = 5, pause: float = 0.01) -> float:
 def default_threads() -> int:
     """:func:`free_cores` of this process's CPU affinity and :func:`busy_cores`, read once per
     process (before its own solves add to the load)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return free_cores(cores, busy_cores())
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else cores()
+    return free_cores(usable, busy_cores())
 
 
-def set_threads(threads: int | None) -> int:
-    """Set torch's CPU threads: ``threads``, or for None :func:`default_threads`; returns the
-    number set. Called at every solve's start, so it holds however torch was imported."""
+def set_threads(threads: int | None, field: str = "threads") -> int:
+    """Set torch's CPU threads: ``threads`` (at most this machine's cores: torch would start as
+    many, until other processes cannot fork; ArgumentError naming ``field``), or for None
+    :func:`default_threads`; returns the number set. Called at every solve's start, so it holds
+    however torch was imported."""
+    if threads and int(threads) > cores():
+        raise ArgumentError(f"{field}: got {threads}; {field} must be at most {cores()} (this machine's cores; "
+                            "more threads only fight over them)")
     n = int(threads) if threads else default_threads()
     torch.set_num_threads(n)
     return n

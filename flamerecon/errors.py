@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 
 
 class FlameReconError(Exception):
@@ -94,3 +95,16 @@ def output_error(path, err: OSError) -> OutputError:
     out = OutputError(f"{path}: cannot write ({errno_text(err)}); {hint}")
     out.errno = err.errno
     return out
+
+
+def torch_reason(err: Exception, what: str) -> str:
+    """What ``torch.load`` found wrong with a file meant to be a flamerecon ``what`` (checkpoint,
+    scene-cache entry), one line, without its advice to load with ``weights_only=False`` (which
+    would run whatever code the file holds)."""
+    text = str(err)
+    if "weights_only" in text:
+        found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+        kind = "a " + found.group(1) if found else "Python objects"
+        return (f"it holds {kind}, not only tensors; not a flamerecon {what} (never load it unsafely: that would "
+                "run the code it holds)")
+    return " ".join(text.split())

@@ -43,18 +43,27 @@ class Progress:
     """``total`` steps of a wait called ``what``: :meth:`update` (or :meth:`step`) logs
     ``what: <unit> done/total (detail); <elapsed> elapsed, about <remaining> left``, at most
     one line per ``every`` seconds except the last; the remaining time assumes the steps left
-    take as long as the ones done."""
+    take as long as the ones done. With ``after`` > 0 a wait says nothing until it has lasted
+    that long (no "started" line, and none at all for a short one): for work that is quick at
+    one size and long at another (an assembly, a render)."""
 
-    def __init__(self, what: str, total: int, unit: str = "step", every: float = 0.0) -> None:
+    def __init__(self, what: str, total: int, unit: str = "step", every: float = 0.0, after: float = 0.0) -> None:
         self.what, self.total, self.unit, self.every = what, max(int(total), 1), unit, float(every)
+        self.after = float(after)
         self.done = 0
         self.start = self.last = time.perf_counter()
-        _emit(f"{what}: {self.total} {unit}{'s' if self.total != 1 else ''}, started")
+        self.spoken = self.after <= 0
+        if self.spoken:
+            _emit(f"{what}: {self.total} {unit}{'s' if self.total != 1 else ''}, started")
 
     def update(self, done: int, detail: str = "") -> None:
         """``done`` steps of :attr:`total` are finished (``detail`` says about the last)."""
         self.done = min(int(done), self.total)
         now = time.perf_counter()
+        if not self.spoken:  # quiet until ``after`` seconds, then a line at once
+            if now - self.start < self.after:
+                return
+            self.spoken, self.last = True, now - self.every
         if self.done < self.total and now - self.last < self.every:
             return
         self.last = now

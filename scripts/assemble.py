@@ -1,16 +1,25 @@
-"""Gather a Hydra multirun over frames into one sequence: npz, ParaView series, metrics table.
+"""Gather a Hydra multirun: its jobs side by side, and a multirun over frames into one sequence.
 
     PYTHONPATH=. python scripts/assemble.py SWEEP_DIR [--no-vti] [--skip-incomplete]
 
-Writes into SWEEP_DIR: sequence.npz (T, C, nz, ny, nx) with frame numbers, sequence.pvd +
-sequence_vti/frame_NNNN.vti, sequence_metrics.csv and sequence_metrics.png (needs matplotlib).
+Prints a table of the jobs (the overrides that set them apart, held-out PSNR, black-image floor,
+SSIM, detail, training PSNR, iterations, seconds, status) and writes it as sweep_summary.csv. A
+multirun over frames (scene.frame) also becomes, in SWEEP_DIR: sequence.npz (T, C, nz, ny, nx)
+with frame numbers, sequence.pvd + sequence_vti/frame_NNNN.vti, sequence_metrics.csv and
+sequence_metrics.png (needs matplotlib); a sweep over other settings is only compared.
 """
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 
 from flamerecon.outputs.sequence import assemble_sweep
+from flamerecon.outputs.sweep import sweep_rows, sweep_table, write_sweep_csv
 from flamerecon.run.cli import run_script, script_parser
 
 
@@ -24,6 +33,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def assemble() -> None:
+        print(sweep_table(args.sweep_dir))
+        print(f"table: {write_sweep_csv(args.sweep_dir)}")
+        varying, _ = sweep_rows(args.sweep_dir)
+        if varying and "scene.frame" not in varying:
+            print(f"not a sequence of frames (its jobs differ in {', '.join(varying)}): compared above only")
+            return
         written = assemble_sweep(args.sweep_dir, vti=not args.no_vti,
                                  skip_incomplete=args.skip_incomplete)
         for kind, path in written.items():

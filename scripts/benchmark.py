@@ -24,6 +24,11 @@ one A^T y against bytes(A) / bandwidth, and a fused A^T (A y - b) in one sweep (
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import hashlib
 import multiprocessing as mp
 import os
@@ -639,7 +644,7 @@ def run(args) -> None:
     check_args(args)
     device = resolve_device(args.device, "--device")
     args.device = device.type
-    set_threads(args.threads)
+    set_threads(args.threads, "--threads")
     machine = {"platform": platform.platform(), "processor": platform.processor(),
                "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                "torch": torch.__version__, "device": str(device),

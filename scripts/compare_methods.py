@@ -21,6 +21,11 @@ correlation compares: a blurred render has a flat grey band).
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import argparse
 import sys
 import time

@@ -16,6 +16,11 @@ which chose nothing. Writes DIR/cv.json.
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import argparse
 import itertools
 import math

@@ -12,6 +12,11 @@ products of A, seconds, final objective and relative duality gap, with the load 
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import argparse
 import os
 import sys

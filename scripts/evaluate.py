@@ -12,6 +12,11 @@ each PSNR beside that of an all-black image (the floor).
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 from pathlib import Path
 
@@ -34,6 +39,9 @@ def main(argv: list[str] | None = None) -> int:
         with run_lock(args.run_dir):
             metrics = evaluate(args.run_dir, device=args.device, native=args.native)
         print(f"{args.run_dir}\n{summary_table(metrics)}")
+        if args.native and "native" not in metrics.get("resolution", {}):
+            print("native resolution: not scored separately; the run works at its capture's own resolution "
+                  "(scene.downscale=1; the synthetic scene renders its images at the working size)")
 
     return run_script(score, args.debug)
 

@@ -1,13 +1,19 @@
-"""Export a run's density.npz for ParaView (VTK .vti), NRRD readers, simulation codes (raw) and
-as an iso-surface mesh for Blender and ParaView (PLY, OBJ).
+"""Export a run's density.npz for ParaView (VTK .vti), NRRD readers, simulation codes (raw),
+Blender and Houdini (OpenVDB .vdb) and as an iso-surface mesh for Blender and ParaView (PLY, OBJ).
 
     PYTHONPATH=. python scripts/export.py RUN_DIR --format vti --format ply [--iso 0.1]
 
-Formats: vti, nrrd, raw, ply, obj, mesh (ply and obj), all (every one; the default). Writes
-RUN_DIR/density.vti, density.nrrd, density.raw + density.raw.json, density.ply, density.obj.
+Formats: vti, nrrd, raw, vdb, ply, obj, mesh (ply and obj), all (every one; the default). Writes
+RUN_DIR/density.vti, density.nrrd, density.raw + density.raw.json, density.vdb, density.ply,
+density.obj.
 """
 
 from __future__ import annotations
+
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
 
 import sys
 

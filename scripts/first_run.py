@@ -12,16 +12,19 @@ held-out scores are printed with the frames: the scalarflow settings were chosen
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import json
 import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from flamerecon.errors import ConfigError, FlameReconError
-from flamerecon.run.cli import at_least, output_folder, run_script, script_parser
+from flamerecon.errors import ConfigError
+from flamerecon.run.cli import at_least, output_folder, run_script, script_parser, timed_child
 
 TRAIN = Path(__file__).resolve().parents[1] / "train.py"
 
@@ -32,12 +35,7 @@ def timed_run(frame: int, folder: Path, overrides: list[str]) -> tuple[float, di
     scene = [] if any(o.startswith("scene=") for o in overrides) else ["scene=scalarflow"]
     command = [sys.executable, str(TRAIN), *scene, f"scene.frame={frame}",
                f"calibration.folder={folder / 'calibration'}", *overrides, f"hydra.run.dir={run_dir}"]
-    started = time.perf_counter()
-    done = subprocess.run(command, check=False, capture_output=True, text=True)
-    seconds = time.perf_counter() - started
-    if done.returncode != 0:
-        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
-        raise FlameReconError(f"train.py on frame {frame} failed (exit status {done.returncode}): {last}")
+    seconds = timed_child(command, f"train.py on frame {frame}")
     return seconds, json.loads((run_dir / "metrics.json").read_text())
 
 

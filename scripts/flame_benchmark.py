@@ -23,6 +23,11 @@ the first method. Report on seeds that chose none of the settings compared (say 
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import argparse
 import sys
 import time

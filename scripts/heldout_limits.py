@@ -17,6 +17,11 @@ DIR/<frame>-<view>.png: captured | rendered over their detail bands.
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import math
 import sys
 from pathlib import Path

@@ -13,6 +13,11 @@ the rig-calibrated one instead (``calibration.rig=true``: every camera refined o
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 import time
 from pathlib import Path

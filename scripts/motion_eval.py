@@ -17,6 +17,11 @@ writes, per frame, the held-out view captured beside each setting's render (PNG)
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import sys
 import time
 from pathlib import Path

@@ -29,6 +29,11 @@ printed, with the load average ("extra": restarts, accepted extrapolations, or n
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import os
 import sys
 import time

@@ -15,6 +15,11 @@ Nothing asked for means --figures.
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
+
 import argparse
 import json
 import sys
@@ -39,7 +44,7 @@ from flamerecon.outputs.figures import (
     slices_figure,
     support_box,
     to_rgb8,
-    top_view,
+    top_view_figure,
     turntable_frames,
     views_around,
     write_gif,
@@ -106,6 +111,16 @@ def parse_orbit(spec: str) -> tuple[float, float, float | None]:
     return numbers[0], numbers[1], numbers[2] if len(numbers) == 3 else None
 
 
+def labelled(image: np.ndarray, text: str) -> np.ndarray:
+    """An (H, W, 3) uint8 render with ``text`` in its top-left corner, to be read alone (left
+    as it is where the text would not fit: the file's name says the same)."""
+    image = np.ascontiguousarray(image)
+    (width, height), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.4, 1)
+    if width + 8 <= image.shape[1] and 3 * height <= image.shape[0]:
+        cv2.putText(image, text, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return image
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
     parser.add_argument("run_dir", type=Path, help="run folder holding density.npz")
@@ -156,22 +171,24 @@ def render(args: argparse.Namespace) -> list[Path]:
             cams = orbit_cameras([azimuth], elevation, distance, (near + far) / 2, args.width,
                                  args.height, args.fov, up)
             names = [f"orbit_az{azimuth:g}_el{elevation:g}_d{distance:.3g}"]
+            labels = [f"azimuth {azimuth:g} deg, elevation {elevation:g} deg, distance {distance:.3g}"]
         else:
             names, cams = read_cameras_json(Path(spec), args.view)
+            labels = [f"camera {name}" for name in names]
             names = [f"camera_{file_stem(name)}" for name in names]  # <view>.png is the pipeline's held-out figure
         images = render_views(volume, lo, hi, cams)
-        for name, image in zip(names, images):
-            written.append(write_png(out / f"{name}.png", to_rgb8(image, args.vmax)))
+        for name, label, image in zip(names, labels, images):
+            written.append(write_png(out / f"{name}.png", labelled(to_rgb8(image, args.vmax), label)))
     if args.turntable:
         frames = turntable_frames(volume, lo, hi, args.turntable, args.elevation, args.width,
                                   args.height, args.fov, up, vmax=args.vmax)
         written.append(write_mp4(out / "turntable.mp4", frames, args.fps))
         written.append(write_gif(out / "turntable.gif", frames, min(args.fps, 25.0)))
     if args.figures or not (args.camera or args.turntable):
-        top = top_view(density, lo, hi, up=args.up)
-        scale = max(1, 256 // max(top.shape[:2]))
-        top = cv2.resize(top, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-        written.append(write_png(out / "top_view.png", top))
+        try:
+            written.append(top_view_figure(out / "top_view.png", density, lo, hi, args.up, str(args.run_dir)))
+        except ImportError as err:
+            print(f"flamerecon: top_view.png skipped: {err}", file=sys.stderr)
         sheet = views_around(volume, lo, hi, 10, args.elevation, args.width, args.height,
                              args.fov, up, vmax=args.vmax)
         written.append(write_png(out / "views_10.png", sheet))

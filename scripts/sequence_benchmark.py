@@ -3,13 +3,25 @@ API, cold or warm-started from the previous frame's density; prints per frame th
 iterations and held-out PSNR, SSIM and detail correlation, then frames per minute.
 
     python scripts/sequence_benchmark.py --frames 0 74 [--warm] [--every 1] \
-        [scene=scalarflow by default, any train.py overrides ...]
+        [--protocol run|hyfluid] [--out FILE.json] [scene=scalarflow by default, train.py overrides ...]
 
 Frames per minute counts everything a user waits for: loading the frame, the reconstruction
 (camera refinement included when the scene's default has it) and scoring it.
+
+``--protocol hyfluid`` scores each frame as HyFluid scores ScalarFlow (flamerecon/evaluate/
+protocols.py): train02 held out, rendered at half resolution (540 x 960) whatever the resolution
+reconstructed (scene.downscale), cropped to rows 90-960 and columns 45-540, PSNR on [0, 1] and
+SSIM as scikit-image computes it; its frames default to 60-74. ``--protocol run`` (the default)
+prints the run's own held-out scores at its working resolution. ``--out`` writes the per-frame
+figures (``psnr``, ``ssim``, ``detail``, ``seconds`` per frame) and their means as JSON.
 """
 
 from __future__ import annotations
+
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first, before the slow imports: a stop signal ends in one line, exit status 130
 
 import os
 import time
@@ -17,35 +29,51 @@ import time
 import numpy as np
 
 import flamerecon as fr
+from flamerecon.evaluate.protocols import PROTOCOLS, protocol_scores
 from flamerecon.fit.reconstruct import mean_of
-from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
+from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.progress import duration
+from flamerecon.run.cli import at_least, compose_train, output_file, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
-    parser.add_argument("--frames", type=at_least(0), nargs=2, default=[0, 74], metavar=("FIRST", "LAST"),
-                        help="the first and last frame, FIRST <= LAST (default: 0 74)")
+    parser.add_argument("--frames", type=at_least(0), nargs=2, default=None, metavar=("FIRST", "LAST"),
+                        help="the first and last frame, FIRST <= LAST (default: 0 74; 60 74 with --protocol hyfluid)")
     parser.add_argument("--every", type=at_least(1), default=1, help="take every N-th frame")
     parser.add_argument("--warm", action="store_true", help="warm-start each frame from the previous one")
+    parser.add_argument("--protocol", choices=["run", *PROTOCOLS], default="run",
+                        help="how the held-out view is scored (default: run, the run's own scores)")
+    parser.add_argument("--out", type=output_file, default=None, metavar="FILE.json",
+                        help="also write the per-frame figures as JSON")
     parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
     args = parser.parse_args(argv)
-    if args.frames[0] > args.frames[1]:
-        parser.error(f"argument --frames: FIRST {args.frames[0]} is after LAST {args.frames[1]}; "
+    frames_given = args.frames or ([60, 74] if args.protocol == "hyfluid" else [0, 74])
+    if frames_given[0] > frames_given[1]:
+        parser.error(f"argument --frames: FIRST {frames_given[0]} is after LAST {frames_given[1]}; "
                      "give FIRST <= LAST")
+    protocol = PROTOCOLS.get(args.protocol)
 
     def run() -> None:
-        base = compose_train(args.overrides)
+        overrides = list(args.overrides)
+        if protocol is not None and not any(o.startswith("holdout=") for o in overrides):
+            overrides.append(f"holdout=[{protocol.view}]")
+        base = compose_train(overrides)
         options = options_from_config(base)
-        frames = list(range(args.frames[0], args.frames[1] + 1, args.every))
+        frames = list(range(frames_given[0], frames_given[1] + 1, args.every))
         print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs at the start", flush=True)
         print(f"{len(frames)} frames, {'warm' if args.warm else 'cold'} starts, "
-              f"{options.solver.name} on a {options.grid.resolution}-cell grid, calibration.refine="
-              f"{options.calibration.refine}", flush=True)
+              f"{options.solver.name} on a {options.grid.resolution}-cell grid at scene.downscale="
+              f"{base.scene.get('downscale', 1)}, calibration.refine={options.calibration.refine}; held-out scores: "
+              + (f"the {protocol.name} protocol ({protocol.view} at 1/{protocol.downscale} resolution"
+                 + (f", rows {protocol.rows[0]}-{protocol.rows[1]}, columns {protocol.cols[0]}-{protocol.cols[1]})"
+                    if protocol.rows else ", full frame)") if protocol else "the run's own, at its working resolution"),
+              flush=True)
         print(f"{'frame':>5} {'load s':>7} {'recon s':>8} {'score s':>8} {'iters':>6} {'held-out dB':>12} "
-              f"{'SSIM':>7} {'detail':>7} {'train dB':>9}", flush=True)
-        previous, rows, started = None, [], time.perf_counter()
+              f"{'SSIM':>7} {'detail':>7} {'train dB':>9}  done, left", flush=True)
+        previous, rows, per_frame, started = None, [], {}, time.perf_counter()
         for t in frames:
             clock = time.perf_counter()
             scene = load_scene({**base.scene, "frame": t})
@@ -53,14 +81,24 @@ def main(argv: list[str] | None = None) -> int:
             rec = fr.reconstruct(scene, options, init=previous if args.warm else None)
             solved = time.perf_counter()
             metrics = fr.score(rec)
+            train = mean_of(metrics["train"], "psnr")
+            if protocol is None:
+                held = {key: mean_of(metrics["heldout"], key) for key in ("psnr", "ssim", "detail")}
+            else:
+                held = protocol_scores(protocol, {**base.scene, "frame": t}, rec.scene, rec.setup.train,
+                                       rec.density, rec.grid, rec.setup.step)
             scored = time.perf_counter()
-            held, train = mean_of(metrics["heldout"], "psnr"), mean_of(metrics["train"], "psnr")
-            ssim, detail = mean_of(metrics["heldout"], "ssim"), mean_of(metrics["heldout"], "detail")
-            rows.append((loaded - clock, solved - loaded, scored - solved, rec.fit.result.iterations, held,
-                         ssim, detail, train))
+            rows.append((loaded - clock, solved - loaded, scored - solved, rec.fit.result.iterations, held["psnr"],
+                         held["ssim"], held["detail"], train))
+            per_frame[str(t)] = {"psnr": held["psnr"], "ssim": held["ssim"], "detail": held["detail"],
+                                 "train_psnr": train, "seconds": scored - clock, "reconstruction_seconds": solved - loaded,
+                                 "iterations": rec.fit.result.iterations}
+            left = (time.perf_counter() - started) / len(rows) * (len(frames) - len(rows))  # the ETA
             print(f"{t:5d} {rows[-1][0]:7.2f} {rows[-1][1]:8.2f} {rows[-1][2]:8.2f} {rows[-1][3]:6d} "
-                  f"{held:12.2f} {ssim:7.4f} {detail:7.3f} {train:9.2f}", flush=True)
+                  f"{held['psnr']:12.2f} {held['ssim']:7.4f} {held['detail']:7.3f} {train:9.2f}  {len(rows)}/{len(frames)}, "
+                  f"{duration(left)} left", flush=True)
             previous = rec.density.cpu()
+            del rec, scene
         wall = time.perf_counter() - started
         data = np.array(rows)
         print(f"mean  {data[:, 0].mean():7.2f} {data[:, 1].mean():8.2f} {data[:, 2].mean():8.2f} "
@@ -68,6 +106,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{data[:, 7].mean():9.2f}")
         print(f"{len(frames)} frames in {wall:.1f} s wall: {60 * len(frames) / wall:.2f} frames per minute "
               f"(load average {os.getloadavg()[0]:.1f} at the end)")
+        if args.out:
+            mean = {key: float(np.mean([f[key] for f in per_frame.values()])) for key in next(iter(per_frame.values()))}
+            write_json_atomic(args.out, {"protocol": args.protocol, "overrides": overrides, "frames": per_frame,
+                                         "mean": mean, "wall_seconds": wall})
+            print(f"wrote {args.out}")
 
     return run_script(run, args.debug)
 

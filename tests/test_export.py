@@ -223,7 +223,7 @@ def test_export_script_writes_all_formats_into_run_dir(tmp_path):
     assert proc.returncode == 0, proc.stderr
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["density.npz", "density.nrrd", "density.obj", "density.ply", "density.raw",
-                     "density.raw.json", "density.vti"]
+                     "density.raw.json", "density.vdb", "density.vti"]
     _, arrays = _read_vti(tmp_path / "density.vti")
     np.testing.assert_array_equal(arrays["G"], vol[1].reshape(-1))
 

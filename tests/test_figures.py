@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from flamerecon.geometry.cameras import camera_centers, project_points
+from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.export import save_density
 from flamerecon.outputs.figures import (
     BAR_LABEL_PX,
@@ -40,7 +41,7 @@ from flamerecon.outputs.figures import (
     write_mp4,
     write_png,
 )
-from tests.helpers import repo_env
+from tests.helpers import repo_env, tiny_synthetic
 
 REPO = Path(__file__).resolve().parents[1]
 LO = np.array([0.0, 0.0, 0.0])
@@ -256,8 +257,9 @@ def test_the_slices_figure_has_a_colour_bar(tmp_path, monkeypatch):
     slices_figure(tmp_path / "slices.png", _blob(), LO, HI)
     axes = made[0].axes
     assert len(axes) == 4  # three planes and the colour bar
-    assert [a.get_xlabel() + a.get_ylabel() for a in axes[:3]] == ["xy", "zy", "xz"]
-    assert axes[3].get_ylabel() == "density"
+    assert [a.get_xlabel()[0] + a.get_ylabel()[0] for a in axes[:3]] == ["xy", "zy", "xz"]
+    assert all(a.get_xlabel().endswith(" (world units)") for a in axes[:3])
+    assert axes[3].get_ylabel() == "density (image units per world unit)"
     assert "centre of mass" in made[0].get_suptitle()
 
 
@@ -318,3 +320,36 @@ def test_render_script_errors_name_the_problem(tmp_path, capsys, args, message):
     args = [str(tmp_path / "cams.json") if a == "CAMFILE" else a for a in args]
     assert script.main([str(tmp_path), *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_held_out_figure_carries_its_psnr_and_the_black_floor(monkeypatch, tmp_path):
+    """renders/VIEW.png is read alone: its title holds the view's PSNR (as metrics.json has it)
+    and the black image's."""
+    from flamerecon.evaluate import scores as scores_module
+    from flamerecon.evaluate.scores import score, write_renders
+
+    seen = {}
+
+    def figure(rendered, captured, view, psnr=None, black=None):
+        seen[view] = (psnr, black)
+        return np.zeros((4, 4, 3), np.uint8)
+
+    monkeypatch.setattr(scores_module, "heldout_figure", figure)
+    scene = tiny_synthetic()
+    grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 8)
+    volume = torch.rand(3, *grid.shape) * 0.1
+    metrics, held = score(scene, volume, grid, [0, 1, 2, 3], [4], 0.5)
+    write_renders(tmp_path, held, scene, [4])
+    assert seen["cam04"] == pytest.approx((metrics["heldout"]["cam04"]["psnr"], metrics["heldout"]["cam04"]["psnr_black"]))
+
+
+def test_the_top_view_is_a_figure_with_axes_and_a_colour_bar(tmp_path):
+    pytest.importorskip("matplotlib")
+    from flamerecon.outputs.figures import top_view_figure
+
+    density = np.zeros((3, 6, 8, 10), np.float32)
+    density[:, 2:4, :, 3:7] = 1.0
+    path = top_view_figure(tmp_path / "top_view.png", density, (0, 0, 0), (1.0, 0.8, 0.6), title="run")
+    image = cv2.imread(str(path))
+    assert image.shape == (440, 520, 3)  # a labelled figure, not the 8 x 10 projection blown up
+    assert (image[..., 2].astype(int) - image[..., 0] > 60).any()  # the inferno colours of the density

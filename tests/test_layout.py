@@ -1,6 +1,7 @@
 """The package tree is the pipeline: each folder is a stage, and a stage imports only the
 stages below it (no loops), read from the source's own import statements, function-level
-imports included. Only ``flamerecon/run/`` knows Hydra or OmegaConf."""
+imports included. Only ``flamerecon/run/`` knows Hydra or OmegaConf. ``viewer/`` (the web viewer's
+server loop) sits above the run layer; ``__main__`` (the ``flamerecon`` command) above all."""
 
 from __future__ import annotations
 
@@ -17,9 +18,9 @@ PACKAGE = REPO / "flamerecon"
 #: leaf modules are the foundation; ``api`` and ``__init__`` are the front door above all.
 RANKS = {
     "errors": 0, "device": 0, "resources": 0, "plain": 0, "rules": 0, "arguments": 0, "native": 0,
-    "progress": 0,
+    "progress": 0, "machine": 0, "interrupt": 0,
     "geometry": 1, "operators": 2, "solvers": 3, "outputs": 4, "scenes": 5, "evaluate": 6,
-    "fit": 7, "run": 8, "api": 9, "": 9,
+    "fit": 7, "run": 8, "viewer": 9, "api": 10, "__main__": 10, "": 10,
 }
 
 

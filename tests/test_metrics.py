@@ -143,3 +143,20 @@ def test_the_detail_band_of_an_image_smaller_than_its_kernel_is_defined():
     image = torch.rand(3, 6, 5)
     band = detail_band(image, sigma=8.0)  # a 49-px kernel on a 6x5 image
     assert band.shape == image.shape and torch.isfinite(band).all() and band.abs().sum() > 0
+
+
+@pytest.mark.parametrize("shape, sigma", [((1, 60, 80), 1.78), ((3, 48, 64), 2.0), ((2, 5, 7), 2.0), ((1, 90, 40), 8.0)])
+def test_the_detail_band_is_the_image_less_its_reflected_gaussian_blur(shape, sigma):
+    """The band against kornia's own Gaussian blur (reflect padding, kernel 2 ceil(3 sigma) + 1,
+    at most 2 min(H, W) - 1), on images small enough that the kernel is cut."""
+    import kornia
+
+    from flamerecon.evaluate.metrics import detail_band
+
+    image = torch.rand(shape, generator=torch.Generator().manual_seed(0))
+    size = min(2 * math.ceil(3 * sigma) + 1, 2 * min(shape[-2:]) - 1)
+    flat = image[None].double()
+    expected = flat - kornia.filters.gaussian_blur2d(flat, (size, size), (sigma, sigma), border_type="reflect")
+    band = detail_band(image, sigma)
+    assert band.shape == image.shape
+    assert float((band - expected[0]).abs().max()) <= 1e-12

@@ -28,6 +28,8 @@ def test_the_quickstart_notebook_runs(tmp_path, monkeypatch):
         pytest.skip(f"no Jupyter kernel can start here: {err}")
     printed = "".join(o.get("text", "") for c in notebook.cells if c.cell_type == "code" for o in c.outputs)
     assert "held-out cam04: PSNR" in printed
+    pictures = [o for c in notebook.cells if c.cell_type == "code" for o in c.outputs if "image/png" in o.get("data", {})]
+    assert len(pictures) >= 3  # the held-out view, the novel views and the slices, inline
     assert "novel views (3, " in printed
     assert "'synthetic.vti', 'synthetic.ply', 'synthetic.obj'" in printed
     if (REPO.parent / "shared" / "data" / "scalarflow_real").is_dir():

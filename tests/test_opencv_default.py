@@ -59,7 +59,38 @@ def test_the_opencv_default_chooses_its_weights_and_debiases(capture, tmp_path):
     assert metrics["solver"]["debias"]["method"] == "gain"
     held = metrics["heldout"][scene.views[-1]]
     assert held["psnr"] > held["psnr_black"] + 3  # it predicts the unseen camera
-    assert "selection" in metrics["timing"]
+    assert "the capture's calibration" in selection["source"]  # chosen on calibration.frames, kept in its file
+    assert selection["frames"] == list(cfg.calibration.frames) or cfg.calibration.frames == "auto"
     saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert saved["solver"]["selection"]["chosen"] == selection["chosen"]
     assert torch.isfinite(torch.tensor(held["psnr"]))
+
+
+def test_a_later_frame_reads_the_capture_s_cameras_and_weights(capture, tmp_path):
+    """The camera fit and the weights are the capture's: a second run of it reads both from the
+    calibration file (no fit, no selection) and solves with the same weights."""
+    root, _ = capture
+    overrides = ["scene=opencv", f"scene.root={root}", "grid.resolution=16", "device=cpu", "select.iterations=10",
+                 "select.folds=2", "solver.max_iters=30", "log.eval_every=0", f"calibration.folder={tmp_path / 'cal'}"]
+    runs = []
+    for k in range(2):
+        with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+            runs.append(reconstruct(compose("train", overrides=overrides), tmp_path / f"run{k}"))
+    first, later = runs
+    assert (first["calibration"]["source"], later["calibration"]["source"]) == ("fitted", "read")
+    assert later["solver"]["selection"]["chosen"] == first["solver"]["selection"]["chosen"]
+    assert later["solver"]["l1"] == first["solver"]["l1"] and "selection" not in later["timing"]
+
+
+def test_auto_calibration_frames_are_spread_over_the_capture(tmp_path):
+    from flamerecon.fit.refine_cameras import auto_frames
+    from flamerecon.scenes.frames import source_length
+
+    assert auto_frames(75) == (30, 69) and auto_frames(1) == (0,) and auto_frames(2) == (0, 1)
+    folder = tmp_path / "cam0"
+    folder.mkdir()
+    for t in range(12):
+        (folder / f"{t:06d}.png").write_bytes(b"")
+    (folder / "notes.txt").write_text("not a frame")
+    assert source_length(folder / "000003.png") == 12
+    assert source_length(tmp_path / "single.png") == 1

@@ -159,6 +159,11 @@ def test_train_py_runs_as_a_subprocess_and_prints_the_table(cli_run):
     assert f"{metrics['heldout']['cam04']['psnr']:.2f}" in out
     assert (run_dir / ".hydra" / "config.yaml").is_file()
     assert (run_dir / "density.npz").is_file() and (run_dir / "renders" / "cam04.png").is_file()
+    # the composed config's main nodes open the output, with the overrides and where all of it is
+    head = out[out.index("config (overrides: "):]
+    assert f"all of it: {run_dir / '.hydra' / 'config.yaml'}" in head.splitlines()[0]
+    assert "\n  solver:\n    name: fista\n" in head and "\n  grid:\n    resolution: 16\n" in head
+    assert out.index("config (overrides: ") < out.index("held-out PSNR [dB]")
 
 
 @pytest.mark.slow
@@ -190,7 +195,9 @@ def test_evaluate_reproduces_the_heldout_psnr_of_a_finished_run(cli_run, capsys)
     finally:
         sys.argv = argv
     assert stop.value.code == 0
-    assert "held-out PSNR [dB]" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "held-out PSNR [dB]" in out
+    assert "native resolution: not scored separately; the run works at its capture's own resolution" in out
     script = json.loads((run_dir / "metrics.json").read_text())
     assert script["heldout"]["cam04"]["psnr"] == pytest.approx(before["heldout"]["cam04"]["psnr"], abs=1e-6)
 

@@ -58,11 +58,13 @@ def test_a_refused_command_says_why_in_one_line_and_leaves_no_folder(case, tmp_p
 
 def test_a_refusal_keeps_a_folder_that_held_something_before(tmp_path):
     """Only folders the command made go: a run folder named on the command line that already
-    holds files keeps them, and the FAILED file that says why."""
+    holds files (taken with overwrite=true: it is not empty) keeps them, and the FAILED file
+    that says why."""
     run = tmp_path / "run"
     run.mkdir()
     (run / "notes.txt").write_text("mine\n")
-    proc = subprocess.run([sys.executable, str(REPO / "train.py"), "solver.l1=-1", f"hydra.run.dir={run}"],
+    proc = subprocess.run([sys.executable, str(REPO / "train.py"), "solver.l1=-1", "overwrite=true",
+                           f"hydra.run.dir={run}"],
                           cwd=tmp_path, capture_output=True, text=True, env=repo_env(), timeout=300, check=False)
     assert proc.returncode == 2 and len(proc.stderr.splitlines()) == 1, proc.stderr
     assert (run / "notes.txt").read_text() == "mine\n"

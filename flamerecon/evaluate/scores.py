@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import torch
 
+from flamerecon import interrupt
 from flamerecon.evaluate.metrics import (
     DETAIL_REFERENCE_PX,
     DETAIL_SIGMA_PX,
@@ -30,7 +31,7 @@ from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import apply_gain_offset
 from flamerecon.geometry.silhouettes import silhouettes
 from flamerecon.operators.projector import render_image
-from flamerecon.outputs.atomic import atomic_write_bytes, make_folder
+from flamerecon.outputs.atomic import atomic_write_bytes, make_subfolder
 from flamerecon.outputs.figures import heldout_figure
 from flamerecon.outputs.names import file_stems
 from flamerecon.scenes import Scene, load_scene
@@ -131,6 +132,7 @@ def score_views(rendered: torch.Tensor, scene: Scene, views: list[int],
     sigma = detail_sigma(scene)
     out = {}
     for k, (img, v) in enumerate(zip(rendered, views)):
+        interrupt.check()
         img, captured = scene.to_recorded(img), scene.recorded_view(v)
         out[scene.views[v]] = {
             "psnr": psnr(img, captured),
@@ -170,10 +172,13 @@ def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: li
     the confidence images (V, C, H, W) of the renders) with titles and a colour bar
     (:func:`~flamerecon.outputs.figures.heldout_figure`), one per held-out view (the view
     name made a safe, unique file name, :func:`~flamerecon.outputs.names.file_stems`)."""
-    folder = make_folder(run_dir / "renders")
+    folder = make_subfolder(run_dir, "renders")
     stems = file_stems(scene.views)
     for k, (img, v) in enumerate(zip(rendered, views)):
-        panel = heldout_figure(img, scene.images[v], scene.views[v], None if sigma is None else sigma[k])
+        captured = scene.recorded_view(v)
+        spread = {} if sigma is None else {"sigma": sigma[k]}
+        panel = heldout_figure(img, scene.images[v], scene.views[v], view_psnr(img, scene, v),
+                               psnr(torch.zeros_like(captured), captured), **spread)
         ok, png = cv2.imencode(".png", np.ascontiguousarray(panel[..., ::-1]))
         if not ok:
             raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")

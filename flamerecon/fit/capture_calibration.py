@@ -46,9 +46,10 @@ from flamerecon.scenes.cache import cache_home, digest, entry_key
 log = logging.getLogger(__name__)
 
 #: options that do not change the cameras fitted: views held out (the training views are keyed),
-#: warm start, threads, the device (its type is keyed), the run's grid (the fit's is keyed) and
-#: the confidence computed after the solve
-UNKEYED = ("holdout", "init", "threads", "device", "grid", "uncertainty")
+#: warm start, threads, the device (its type is keyed), the run's grid (the fit's is keyed), the
+#: resolution ladder (the fit runs on one rung's images, which are keyed) and the confidence
+#: computed after the solve
+UNKEYED = ("holdout", "init", "threads", "device", "grid", "ladder", "uncertainty")
 
 
 @dataclass
@@ -62,28 +63,35 @@ class CaptureCalibration:
     history: list[dict]
     source: str
     file: Path | None
+    selection: dict | None = None  # select.auto's record of the capture's weights (chosen on the frames)
 
 
 def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
-                       device: torch.device, frame_of: Callable[[Scene], CalibrationFrame]) -> CaptureCalibration:
+                       device: torch.device, frame_of: Callable[[Scene], CalibrationFrame],
+                       choose: Callable[[PinholeCamera, list[Scene]], dict | None] | None = None
+                       ) -> CaptureCalibration:
     """The training cameras ``train`` of ``scene`` refined over the frames
     ``options.calibration.frames`` of its capture (each loaded as :func:`load_frame` does and
     turned into a :class:`CalibrationFrame` by ``frame_of``), read from the capture's
-    calibration file when it exists, else fitted and written there."""
+    calibration file when it exists, else fitted and written there. ``choose(cameras, frames)``:
+    the selection record of the capture's solver weights, chosen on those frames with the
+    fitted cameras (None: none), kept in the file for every later frame."""
     frames = [load_frame(scene, t) for t in options.calibration.frames]  # refuses a scene without config
     images = {f"frame{t}": f.images[train] for t, f in zip(options.calibration.frames, frames)}
     key = entry_key("calibration", calibration_key(scene, train, grid, options, device, images),
                     [*fitting_code(), sys.modules[frame_of.__module__]])
     folder = Path(options.calibration.folder) if options.calibration.folder else cache_home() / "calibration"
     path = folder / capture_name(scene) / f"cameras-{key[:16]}.json"
-    history = read_calibration(path, key)
-    if history is not None:
-        return CaptureCalibration(file_cameras(path, scene, train), history, "read", path)
+    stored = read_calibration(path, key)
+    if stored is not None:
+        return CaptureCalibration(file_cameras(path, scene, train), list(stored["history"]), "read", path,
+                                  stored.get("selection"))
     found = refine(cameras_to(scene.cameras, device), train, [frame_of(f) for f in frames], grid,
                    options.calibration, float(options.projector.step))
+    selection = None if choose is None else choose(found.cameras, frames)
     records = camera_records(scene.views, cameras_to(found.cameras, "cpu"), train, calibrated=scene.cameras)
     record = {"key": key, "frames": list(options.calibration.frames), "refine": options.calibration.refine,
-              "history": found.history}
+              "history": found.history, "selection": selection}
     try:
         make_folder(path.parent)
         write_json_atomic(path, {"cameras": records, "calibration": record})
@@ -92,7 +100,7 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
                     "calibration.folder to a writable folder", path, err)
     cameras = cameras_from_records(records, scene.views, scene.cameras.height, scene.cameras.width)
     return CaptureCalibration(with_cameras(scene.cameras, train, camera_subset(cameras, train)), found.history,
-                              "fitted", path)
+                              "fitted", path, selection)
 
 
 def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
@@ -111,15 +119,16 @@ def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: Re
     }
 
 
-def read_calibration(path: Path, key: str) -> list[dict] | None:
-    """The fit's history from the calibration file ``path`` when it holds the calibration
-    ``key``; None when there is none (or it is unreadable or another's: it is fitted again)."""
+def read_calibration(path: Path, key: str) -> dict | None:
+    """The ``calibration`` record (the fit's ``history``, the capture's weight ``selection``) of the
+    calibration file ``path`` when it holds the calibration ``key``; None when there is none
+    (or it is unreadable or another's: it is fitted again)."""
     if not path.is_file():
         return None
     try:
         data = read_camera_file(path)
         if data["calibration"]["key"] == key:
-            return list(data["calibration"]["history"])
+            return {"history": list(data["calibration"]["history"]), "selection": data["calibration"].get("selection")}
     except (ConfigError, KeyError, TypeError) as err:
         log.warning("%s is not a calibration file (%s); fitting the cameras again", path, err)
         return None

@@ -13,18 +13,21 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.errors import ConfigError, HullError, MemoryBudgetError
-from flamerecon.fit.memory import available_bytes, format_bytes
 from flamerecon.fit.options import SilhouetteOptions
 from flamerecon.geometry.cameras import K_of, pixel_rays
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.hull import carve_counts
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
+from flamerecon.machine import available_bytes, format_bytes
 from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
 from flamerecon.scenes import Scene, SceneError
 
 log = logging.getLogger(__name__)
 
+#: an assembled operator at least this large is announced (INFO) before it is built: it takes
+#: tens of seconds (a full-resolution ScalarFlow frame on a 256-cell grid: 2.2 GiB, about 25 s)
+LOUD_OPERATOR_BYTES = 2**30
 #: share of the free memory a run may plan to use when ``projector.max_memory_gb`` is unset.
 MEMORY_HEADROOM = 0.8
 #: bytes per voxel of the dense arrays a run holds at once: voxel centres (12), carving (1 per
@@ -90,10 +93,11 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
     seen = sees_box(cams, grid)
     for i in (~seen).nonzero().flatten().tolist():
         lo, hi = [round(v, 4) for v in grid.bbox_min], [round(v, 4) for v in grid.bbox_max]
-        raise SceneError(
-            f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; "
-            "check its world_to_camera (pose, axis convention) or set grid.bbox"
-        )
+        cx, cy = float(K[i, 0, 2]), float(K[i, 1, 2])
+        fix = ("check its world_to_camera (pose, axis convention) or set grid.bbox" if 0 <= cx <= W and 0 <= cy <= H
+               else f"its principal point ({cx:.1f}, {cy:.1f}) px lies outside the {W}x{H} image: check K's cx, cy "
+               "first (pixels of this image), then its pose")
+        raise SceneError(f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; {fix}")
 
 
 def density_fault(density: np.ndarray | torch.Tensor, diagonal: float) -> str | None:
@@ -138,15 +142,17 @@ def memory_budget(device: torch.device, max_memory_gb: float | None) -> int | No
     return None if free is None else int(MEMORY_HEADROOM * free)
 
 
-def check_grid_memory(grid: VoxelGrid, n_views: int, device: torch.device, budget: int | None) -> None:
-    """Refuse a grid whose dense arrays alone would not fit in ``budget`` bytes."""
+def check_grid_memory(grid: VoxelGrid, n_views: int, device: torch.device, budget: int | None,
+                      field: str = "grid.resolution") -> None:
+    """Refuse a grid whose dense arrays alone would not fit in ``budget`` bytes (the option
+    that sized it: ``field``)."""
     need = grid.num_voxels * (DENSE_BYTES_PER_VOXEL + n_views)
     if budget is not None and need > budget:
         nx, ny, nz = grid.resolution
         raise MemoryBudgetError(
-            f"grid.resolution: a {nx}x{ny}x{nz} grid ({grid.num_voxels:.3g} voxels) needs about "
+            f"{field}: a {nx}x{ny}x{nz} grid ({grid.num_voxels:.3g} voxels) needs about "
             f"{format_bytes(need)} for its dense arrays but {format_bytes(budget)} is available on "
-            f"{device}; use a smaller grid.resolution"
+            f"{device}; use a smaller {field}"
         )
 
 
@@ -165,6 +171,10 @@ def choose_backend(
         )
     est = assembled_memory(grid, rays, voxel_index, step)
     if budget is None or est.peak_bytes <= budget:
+        if est.peak_bytes >= LOUD_OPERATOR_BYTES:
+            log.info("operator: %d rays x %d hull voxels, about %.3g nonzeros: %s for A and A^T (%s while it "
+                     "is assembled)", len(rays), int(voxel_index.numel()), est.nnz, format_bytes(est.operator_bytes),
+                     format_bytes(est.peak_bytes))
         return "assembled"
     figure = (
         f"the assembled operator for {len(rays)} rays x {int(voxel_index.numel())} hull voxels "
@@ -173,7 +183,9 @@ def choose_backend(
         f"available on {device}"
     )
     if requested == "auto":
-        log.warning("projector.backend=auto: %s; using the matrix-free backend", figure)
+        log.warning("projector.backend=auto: %s; using the matrix-free backend, whose products march every ray "
+                    "again (150-300x an assembled product's time; its step comes from a 3-product bound): keep its "
+                    "iterations few (a ladder, ladder.rungs, solves coarser levels first)", figure)
         return "matrix_free"
     nx, ny, nz = grid.resolution
     raise MemoryBudgetError(

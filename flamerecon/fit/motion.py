@@ -324,7 +324,9 @@ class MotionReconstruction:
         metrics, _ = score(self.scene, density, self.grid, self.setup.train, self.setup.holdout,
                            self.setup.step, self.options.silhouette.as_dict())
         metrics["warnings"] = result_warnings(self.scene, density, metrics, self.setup.train + self.setup.holdout,
-                                              *penalty_of(self.options.solver.as_dict(), self.record.get("l1", 0.0)))
+                                              *penalty_of(self.options.solver.as_dict(), self.record.get("l1", 0.0)),
+                                              train=self.setup.train, step=self.setup.step,
+                                              bbox=(self.grid.bbox_min, self.grid.bbox_max))
         return metrics
 
 

@@ -7,6 +7,10 @@ walks a plain dict (the composed config, resolved) and raises one
 string (``solver.tol='1e-4'``: quoted on the command line) is refused as such. Keys without a
 rule (``++scene.x=...`` extras) pass; ``tests/test_options_check.py`` makes sure every key of
 every config group has one.
+
+An option that sizes a resource (threads, iteration and round counts, memory, history and shift
+sizes) has an upper bound (:class:`Cap`) tied to what the machine has or to what the method can
+use, refused by name: ``threads: got 1000000; threads must be at most 2 (this machine's cores)``.
 """
 
 from __future__ import annotations
@@ -17,12 +21,14 @@ from dataclasses import dataclass
 
 from flamerecon.arguments import describe
 from flamerecon.errors import ArgumentError, ArgumentTypeError, ConfigError, FlameReconError
+from flamerecon.machine import cores, format_bytes, total_bytes
 from flamerecon.rules import (
     Check,
     boolean,
     choice,
     either,
     integer,
+    is_number,
     list_of,
     number,
     of_type,
@@ -34,11 +40,76 @@ from flamerecon.rules import (
 
 
 @dataclass(frozen=True)
+class Cap:
+    """An upper bound on an option that sizes a resource: ``most()`` the largest value this
+    machine (or the method) can take, None where it cannot be told; ``why(most)`` says why, in
+    the message."""
+
+    most: Callable[[], float | None]
+    why: Callable[[float], str]
+
+    def problem(self, key: str, value) -> str | None:
+        """What is wrong with ``value`` (a number, or a list of them) for ``key``, or None."""
+        most = self.most()
+        numbers = value if isinstance(value, (list, tuple)) else [value]
+        over = [v for v in numbers if is_number(v) and most is not None and v > most]
+        if not over:
+            return None
+        shown = f"{int(most):,}".replace(",", "_") if float(most).is_integer() else f"{most:g}"
+        return f"got {value!r}; {key} must be at most {shown} ({self.why(most)})"
+
+
+@dataclass(frozen=True)
 class Rule:
-    """``check(value)`` returns None or what the value must be; ``null``: None is allowed."""
+    """``check(value)`` returns None or what the value must be; ``null``: None is allowed;
+    ``cap``: the upper bound of an option that sizes a resource."""
 
     check: Check
     null: bool = False
+    cap: Cap | None = None
+
+
+#: the most iterations one solve (or camera fit, refit, inner loop) may be given: at a
+#: millisecond each that is about 3 hours; more runs for days (solver.max_seconds bounds time)
+MAX_ITERATIONS = 10**7
+#: the most rounds (each a whole solve or camera fit) an option may ask for
+MAX_ROUNDS = 1000
+#: the most L-BFGS pairs kept (each holds two copies of the density; 3-20 are the useful range)
+MAX_MEMORY_PAIRS = 1000
+#: the most cells a whole-cell motion search may shift by (it pads every volume by as much on
+#: each side and scores (2 max_shift + 1)^3 shifts)
+MAX_SHIFT = 64
+#: the most frames one motion window may hold (each frame's views are loaded and projected)
+MAX_WINDOW = 101
+#: the most control cells of a motion field along the grid's longest side
+MAX_CONTROL = 256
+#: the most frames one joint solve (scene.frames) may hold: each holds its own operator
+MAX_JOINT_FRAMES = 1000
+
+
+def _fixed(most: float, why: str) -> Cap:
+    return Cap(lambda: most, lambda _: why)
+
+
+_iterations = _fixed(MAX_ITERATIONS, "a longer solve runs for days; bound its time with solver.max_seconds")
+_rounds = _fixed(MAX_ROUNDS, "each round is a whole solve")
+_threads = Cap(cores, lambda _: "this machine's cores; more threads only fight over them")
+
+
+def _gigabytes() -> float | None:
+    total = total_bytes()
+    return None if total is None else round(total / 2**30, 1)
+
+
+def _gram_voxels() -> float | None:
+    """The most unknowns whose dense Gram matrix (8 M^2 bytes) fits in this machine's memory."""
+    total = total_bytes()
+    return None if total is None else float(int((total / 8) ** 0.5))
+
+
+_memory_gb = Cap(_gigabytes, lambda gb: f"the memory this machine has, {format_bytes(gb * 2**30)}")
+_lars_voxels = Cap(_gram_voxels, lambda m: f"the LARS path holds a dense M x M Gram matrix, 8 M^2 bytes: "
+                   f"{format_bytes(8 * m * m)} is this machine's memory")
 
 
 _cells = integer(1)
@@ -46,6 +117,15 @@ _resolution = either(_cells, list_of(_cells, 3, "[nx, ny, nz] of integers >= 1")
 _box = list_of(list_of(number(), 3), 2, "[[xmin, ymin, zmin], [xmax, ymax, zmax]] of numbers")
 _view = either(text, integer())
 _views = either(_view, list_of(_view, what="a list of view names or indices"))
+
+
+@takes(list, tuple)
+def rung(value) -> str | None:
+    """``ladder.rungs`` entry: [downscale (an integer >= 1), grid resolution (int or [nx, ny, nz])]."""
+    want = "a rung [downscale, grid resolution], e.g. [4, 128]"
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        return want
+    return None if integer(1)(value[0]) is None and _resolution(value[1]) is None else want
 
 
 @takes(dict)
@@ -77,26 +157,31 @@ RULES: dict[str, Rule] = {
     # train.yaml
     "holdout": Rule(_views, null=True),
     "device": Rule(pattern(r"auto|cpu|cuda(:\d+)?", "auto, cpu, cuda or cuda:N")),
-    "threads": Rule(integer(1), null=True),
+    "threads": Rule(integer(1), null=True, cap=_threads),
     "seed": Rule(integer(0)),
     "init": Rule(text, null=True),
     "debug": Rule(boolean),
     "resume": Rule(text, null=True),
+    "overwrite": Rule(boolean),
     "grid.resolution": Rule(_resolution),
     "grid.bbox": Rule(_box, null=True),
     "grid.levels": Rule(list_of(_resolution, what="a list of grid sizes (ints or [nx, ny, nz])"),
                         null=True),
     "grid.level_iters": Rule(
-        either(integer(1), list_of(integer(1), what="a list of integers >= 1")), null=True),
+        either(integer(1), list_of(integer(1), what="a list of integers >= 1")), null=True, cap=_iterations),
+    "ladder.rungs": Rule(list_of(rung, what="a list of rungs [downscale, grid resolution], e.g. [[4, 128], [2, 192]]")),
+    "ladder.iterations": Rule(either(integer(1), list_of(integer(1), what="a list of integers >= 1")), null=True,
+                              cap=_iterations),
+    "ladder.final_iterations": Rule(integer(1), null=True, cap=_iterations),
     "projector.backend": Rule(choice("auto", "assembled", "matrix_free")),
     "projector.step": Rule(number(0.01)),  # voxels; finer only multiplies samples (and memory)
-    "projector.max_memory_gb": Rule(number(0, lo_open=True), null=True),
+    "projector.max_memory_gb": Rule(number(0, lo_open=True), null=True, cap=_memory_gb),
     "projector.rays": Rule(choice("silhouette", "hull")),
     "debias.method": Rule(choice("none", "gain", "refit")),
-    "debias.iterations": Rule(integer(1)),
+    "debias.iterations": Rule(integer(1), cap=_iterations),
     "calibration.refine": Rule(choice("none", "pose", "pose+intrinsics")),
-    "calibration.rounds": Rule(integer(1)),
-    "calibration.iterations": Rule(integer(1)),
+    "calibration.rounds": Rule(integer(1), cap=_rounds),
+    "calibration.iterations": Rule(integer(1), cap=_iterations),
     "calibration.band_px": Rule(integer(0)),
     "calibration.max_rays": Rule(integer(1)),
     "calibration.prior_rotation_deg": Rule(number(0, lo_open=True)),
@@ -105,11 +190,11 @@ RULES: dict[str, Rule] = {
     "calibration.prior_principal_px": Rule(number(0, lo_open=True)),
     "calibration.fit_against": Rule(choice("all", "others")),
     "calibration.resolution": Rule(integer(1), null=True),
-    "calibration.frames": Rule(list_of(integer(0), what="a list of frame indices >= 0")),
+    "calibration.frames": Rule(either(choice("auto"), list_of(integer(0), what="a list of frame indices >= 0 or auto"))),
     "calibration.gauge": Rule(choice("mean", "similarity")),
     "calibration.rig": Rule(boolean),
-    "calibration.first_iterations": Rule(integer(1), null=True),
-    "calibration.solve_iterations": Rule(integer(1), null=True),
+    "calibration.first_iterations": Rule(integer(1), null=True, cap=_iterations),
+    "calibration.solve_iterations": Rule(integer(1), null=True, cap=_iterations),
     "calibration.seed": Rule(integer(0)),
     "calibration.folder": Rule(text, null=True),
     "calibration.file": Rule(text, null=True),
@@ -117,30 +202,30 @@ RULES: dict[str, Rule] = {
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),
-    "temporal.max_shift": Rule(integer(0)),
+    "temporal.max_shift": Rule(integer(0), cap=_fixed(MAX_SHIFT, "the search pads every volume by it")),
     "temporal.tol": Rule(number(0)),
-    "motion.window": Rule(integer(1)),
+    "motion.window": Rule(integer(1), cap=_fixed(MAX_WINDOW, "every frame of the window is loaded and projected")),
     "motion.decay": Rule(number(0, 1)),
-    "motion.control": Rule(integer(2)),
+    "motion.control": Rule(integer(2), cap=_fixed(MAX_CONTROL, "control cells along the grid's longest side")),
     "motion.smooth": Rule(number(0)),
-    "motion.iters": Rule(integer(1)),
-    "motion.max_shift": Rule(integer(0)),
+    "motion.iters": Rule(integer(1), cap=_iterations),
+    "motion.max_shift": Rule(integer(0), cap=_fixed(MAX_SHIFT, "the search pads every volume by it")),
     "motion.fit_to": Rule(choice("density", "images")),
     "select.auto": Rule(boolean),
     "select.candidates": Rule(candidate_table),
     "select.folds": Rule(integer(2)),
-    "select.iterations": Rule(integer(1), null=True),
+    "select.iterations": Rule(integer(1), null=True, cap=_iterations),
     "uncertainty.enabled": Rule(boolean),
     "uncertainty.members": Rule(choice("cameras", "weights", "cameras+weights")),
     "uncertainty.shift_voxels": Rule(number(0, 2)),
     "uncertainty.scale": Rule(number(0, lo_open=True)),
-    "uncertainty.iterations": Rule(integer(1), null=True),
+    "uncertainty.iterations": Rule(integer(1), null=True, cap=_iterations),
     "uncertainty.weight_factor": Rule(number(1, lo_open=True)),
     **{f"silhouette.{k}": rule for k, rule in SILHOUETTE.items()},
     "hull.margin_voxels": Rule(integer(0)),
     "photometry.fit_gain": Rule(boolean),
     "photometry.fit_offset": Rule(boolean),
-    "photometry.rounds": Rule(integer(1)),
+    "photometry.rounds": Rule(integer(1), cap=_rounds),
     "log.eval_every": Rule(integer(0)),
     "log.eval_share": Rule(number(0, 1, lo_open=True), null=True),
     "checkpoint.every": Rule(integer(0)),
@@ -149,7 +234,7 @@ RULES: dict[str, Rule] = {
     "solver.name": Rule(text),
     "solver.l1": Rule(number(0), null=True),
     "solver.l1_rel": Rule(number(0), null=True),
-    "solver.max_iters": Rule(integer(1), null=True),
+    "solver.max_iters": Rule(integer(1), null=True, cap=_iterations),
     "solver.max_seconds": Rule(number(0, lo_open=True), null=True),
     "solver.tol": Rule(number(0)),
     "solver.check_every": Rule(integer(1)),
@@ -159,21 +244,21 @@ RULES: dict[str, Rule] = {
     "solver.damp": Rule(number(0)),
     "solver.nonneg": Rule(boolean),
     "solver.smooth": Rule(number(0)),
-    "solver.max_voxels": Rule(integer(1)),
-    "solver.memory": Rule(integer(1)),
+    "solver.max_voxels": Rule(integer(1), cap=_lars_voxels),
+    "solver.memory": Rule(integer(1), cap=_fixed(MAX_MEMORY_PAIRS, "each pair holds two copies of the density")),
     "solver.relax": Rule(number(0, 2, lo_open=True, hi_open=True)),
     "solver.tv": Rule(number(0)),
     "solver.dual_step": Rule(number(0, lo_open=True), null=True),
-    "solver.reweight_rounds": Rule(integer(0)),
+    "solver.reweight_rounds": Rule(integer(0), cap=_rounds),
     "solver.reweight_eps": Rule(number(0, lo_open=True)),
     "solver.reweight": Rule(choice("tv", "l1", "both")),
-    "solver.warm_iters": Rule(integer(0)),
-    "solver.cg_iters": Rule(integer(1)),
+    "solver.warm_iters": Rule(integer(0), cap=_iterations),
+    "solver.cg_iters": Rule(integer(1), cap=_iterations),
     "solver.cg_tol": Rule(number(0, 1, lo_open=True, hi_open=True)),
     "solver.sigma": Rule(number(0, lo_open=True)),
     "solver.sigma_growth": Rule(number(1)),
     "solver.sigma_max": Rule(number(0, lo_open=True)),
-    "solver.newton_iters": Rule(integer(1)),
+    "solver.newton_iters": Rule(integer(1), cap=_iterations),
     # scene/*.yaml
     "scene.name": Rule(text),
     "scene.root": Rule(text),
@@ -200,8 +285,8 @@ RULES: dict[str, Rule] = {
     "scene.azimuths": Rule(list_of(number(), what="a list of camera azimuths in degrees"), null=True),
     "scene.calibration_error": Rule(number(0)),
     # export/*.yaml
-    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "ply", "obj", "mesh", "all"),
-                                   what="a list of vti, nrrd, raw, ply, obj, mesh, all")),
+    "export.formats": Rule(list_of(choice("vti", "nrrd", "raw", "vdb", "ply", "obj", "mesh", "all"),
+                                   what="a list of vti, nrrd, raw, vdb, ply, obj, mesh, all")),
     "export.iso": Rule(number(0, 1, lo_open=True, hi_open=True)),
 }
 
@@ -213,7 +298,7 @@ def problem(key: str, value) -> str | None:
         return None
     want = rule.check(object() if value is None else value)
     if want is None:
-        return None
+        return None if rule.cap is None or value is None else rule.cap.problem(key, value)
     if rule.null:
         want += " or null"
     if quoted_number(value) and rule.check(float(value)) is None:
@@ -320,7 +405,8 @@ NEEDS: dict[str, Need] = {
     "select.auto": Need(bool, _has_candidates, "candidates for the run's solver in select.candidates "
                         "(select.candidates.<solver.name>: a non-empty list)"),
     # calibration.frames alone is not refused: a scene preset sets it (scalarflow: [30, 50, 70]), and
-    # calibration.refine=none must turn the refinement off without the user emptying it too
+    # calibration.refine=none must turn the refinement off without the user emptying it too; nor are
+    # ladder.iterations / final_iterations (the scalarflow preset sets them; ladder.rungs=[] turns it off)
     "calibration.gauge": Need(_changed("mean"), _refined, _REFINEMENT),
     "calibration.rig": Need(bool, _refined, _REFINEMENT),
     "calibration.score_before": Need(bool, _refined, _REFINEMENT),
@@ -355,6 +441,10 @@ def check_options(config: dict) -> None:
         wrong = problem(key, value)
         if wrong is not None:
             raise ConfigError(f"{key}: {wrong}")
+    frames = flat.get("scene.frames")
+    if frames is not None and frames[1] - frames[0] + 1 > MAX_JOINT_FRAMES:
+        raise ConfigError(f"scene.frames: got {frames}, {frames[1] - frames[0] + 1} frames; a joint solve may hold at "
+                          f"most {MAX_JOINT_FRAMES} (each frame holds its own operator): split the range")
     name = flat.get("solver.name")
     unbounded = "solver.max_iters" in flat and flat["solver.max_iters"] is None
     if unbounded and name not in NULL_MAX_ITERS:

@@ -16,6 +16,7 @@ from typing import Any
 from flamerecon.arguments import instance, one_or_many, wrong_value
 from flamerecon.errors import ArgumentError, ConfigError, FlameReconError
 from flamerecon.fit.debias import DebiasOptions
+from flamerecon.fit.levels import LadderOptions
 from flamerecon.fit.option_rules import (
     NULL_MAX_ITERS,
     check_fields,
@@ -189,7 +190,8 @@ class SelectOptions:
 
 SECTIONS = {"grid": GridOptions, "projector": ProjectorOptions, "silhouette": SilhouetteOptions,
             "hull": HullOptions, "photometry": PhotometryOptions, "debias": DebiasOptions,
-            "calibration": RefineOptions, "select": SelectOptions, "uncertainty": UncertaintyOptions}
+            "calibration": RefineOptions, "select": SelectOptions, "ladder": LadderOptions,
+            "uncertainty": UncertaintyOptions}
 
 
 @dataclass(frozen=True)
@@ -206,6 +208,7 @@ class ReconstructionOptions:
     debias: DebiasOptions = field(default_factory=DebiasOptions)
     calibration: RefineOptions = field(default_factory=RefineOptions)
     select: SelectOptions = field(default_factory=SelectOptions)
+    ladder: LadderOptions = field(default_factory=LadderOptions)
     uncertainty: UncertaintyOptions = field(default_factory=UncertaintyOptions)
     holdout: tuple | None = None  # view names or indices; None: the scene's default
     init: str | None = None  # a finished run's folder or density.npz to warm-start from

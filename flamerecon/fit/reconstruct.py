@@ -6,6 +6,7 @@ and the divergence guard (:mod:`flamerecon.run.hook`), the default one just solv
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -18,7 +19,7 @@ import torch
 
 from flamerecon.arguments import describe, fields, instance, tensor, value, wrong_value
 from flamerecon.device import resolve_device, set_threads
-from flamerecon.errors import ArgumentError, ConfigError
+from flamerecon.errors import ArgumentError, ConfigError, FlameReconError
 from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import score
 from flamerecon.fit.build import (
@@ -35,18 +36,19 @@ from flamerecon.fit.build import (
     split_views,
 )
 from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
-from flamerecon.fit.checks import density_fault
+from flamerecon.fit.checks import check_grid_memory, density_fault, memory_budget
 from flamerecon.fit.debias import DebiasOptions, debias
-from flamerecon.fit.levels import level_grids, level_iters
+from flamerecon.fit.levels import LadderOptions, Level, ladder_rungs, plan_levels
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.refine_cameras import CalibrationFrame, correction_report, refine, with_cameras
 from flamerecon.fit.weight_selection import select_weights
 from flamerecon.fit.workload import check_workload
-from flamerecon.geometry.cameras import camera_subset, cameras_to
+from flamerecon.geometry.cameras import camera_subset, cameras_to, resized_cameras
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
+from flamerecon.progress import Progress
 from flamerecon.rules import integer, number
-from flamerecon.scenes import Scene
+from flamerecon.scenes import Scene, capture_length, load_downscaled
 from flamerecon.solvers import Problem, Solver, SolveResult
 
 log = logging.getLogger(__name__)
@@ -182,9 +184,11 @@ class Reconstruction:
     def grid(self) -> VoxelGrid:
         return self.setup.grid
 
-    @property
+    @functools.cached_property
     def density(self) -> torch.Tensor:
-        """(C, nz, ny, nx) emission density on :attr:`grid`."""
+        """(C, nz, ny, nx) emission density on :attr:`grid`: one tensor, made on first use, so
+        that an edit in place (a scale, a mask, a clamp) is what :meth:`score`, ``fr.score``,
+        ``fr.export`` and ``fr.render`` of it see."""
         return self.setup.volume(self.fit.result.x)
 
     @property
@@ -199,8 +203,10 @@ class Reconstruction:
         photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
         metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
                            self.setup.step, self.options.silhouette.as_dict(), photometry)
-        metrics["warnings"] = result_warnings(self.scene, self.density, metrics, self.setup.train + self.setup.holdout,
-                                              *penalty_of(self.options.solver.as_dict(), self.fit.l1))
+        metrics["warnings"] = result_warnings(
+            self.scene, self.density, {**metrics, "calibration": self.calibration}, self.setup.train + self.setup.holdout,
+            *penalty_of(self.options.solver.as_dict(), self.fit.l1), train=self.setup.train, step=self.setup.step,
+            bbox=(self.grid.bbox_min, self.grid.bbox_max))
         return metrics
 
 
@@ -343,49 +349,69 @@ def fit_photometry(options: ReconstructionOptions, setup: Setup, problem: Proble
     return result, Photometry(gain.cpu(), offset.cpu(), iterations, solved)
 
 
-def level_options(options: ReconstructionOptions, max_iters: int | None, cell_ratio: float) -> ReconstructionOptions:
+def level_options(options: ReconstructionOptions, max_iters: int | None, weight_ratio: float) -> ReconstructionOptions:
     """``options`` for a coarse level: ``max_iters`` set to its budget (unchanged for None); an
-    absolute ``solver.l1`` (the final grid's) times ``cell_ratio``, the level's cell volume
-    over the final grid's, the weight under which the coarse problem is the final one restricted
-    to densities constant on the coarse cells (``l1_rel`` needs nothing: max(A^T P) of each
-    level scales the same way)."""
+    absolute ``solver.l1`` (the final level's) times ``weight_ratio``: the level's cell volume
+    over the final grid's, times its pixels over the final images' for a rung of the ladder,
+    the weight under which the coarse problem is the final one restricted to densities constant
+    on the coarse cells (``l1_rel`` needs nothing: max(A^T P) of each level scales the same way)."""
     change: dict = {}
     if max_iters is not None:
         change["max_iters"] = max_iters
     if options.solver.l1:
-        change["l1"] = float(options.solver.l1) * cell_ratio
+        change["l1"] = float(options.solver.l1) * weight_ratio
     return options.replace(solver=options.solver.with_values(**change)) if change else options
+
+
+def levels_of(scene: Scene, options: ReconstructionOptions) -> list[Level]:
+    """The solves before the run's own (:func:`~flamerecon.fit.levels.plan_levels`): the
+    ladder's rungs that run for ``scene``, then ``grid.levels``."""
+    return plan_levels(scene, options.ladder, list(options.grid.levels) or None, options.grid.level_iters,
+                       scene_grid(options.grid, scene))
+
+
+def level_scene(scene: Scene, level: Level) -> Scene:
+    """The scene a level solves: ``scene`` itself, or for a rung its frame loaded at the rung's
+    downscale with ``scene``'s cameras (refined ones too) resized to those images."""
+    if level.downscale is None:
+        return scene
+    coarse = load_downscaled(scene, level.downscale)
+    return replace(coarse, cameras=resized_cameras(scene.cameras, *coarse.image_size))
 
 
 def coarse_levels(scene: Scene, options: ReconstructionOptions, device: torch.device,
                   volume: torch.Tensor | None = None, first: int = 0, hook: SolveHook | None = None,
                   records: list[dict] | None = None) -> torch.Tensor | None:
-    """Solve the coarse grids of ``grid.levels`` from ``first`` on, coarsest first, each on its
-    own visual hull and operator (same box, silhouettes and solver, see :func:`level_options`
-    for its L1 weight and iteration budget), each through ``hook``, each starting from the
-    previous density resampled onto it (the first from ``volume``, or 0); each level's record
-    is appended to ``records``. Returns the last level's density (C, nz, ny, nx), or
-    ``volume`` when there are no levels."""
+    """Solve the levels before the run's own (:func:`levels_of`: the ladder's rungs, then
+    ``grid.levels``) from ``first`` on, coarsest first, each on its own scene
+    (:func:`level_scene`), visual hull and operator (same box, silhouettes and solver, see
+    :func:`level_options` for its L1 weight and iteration budget), each through ``hook``, each
+    starting from the previous density resampled onto it (the first from ``volume``, or 0);
+    each level's record is appended to ``records``. Returns the last level's density (C, nz,
+    ny, nx), or ``volume`` when there are no levels."""
     hook = hook or SolveHook()
     records = [] if records is None else records
     fine = scene_grid(options.grid, scene)
-    grids = level_grids(list(options.grid.levels) or None, fine)
-    budgets = level_iters(options.grid.level_iters, len(grids))
-    for level in range(first, len(grids)):
-        here = level_options(options, budgets[level], fine.num_voxels / grids[level].num_voxels)
-        setup = build(scene, here, device, grids[level])
+    levels = levels_of(scene, options)
+    H, W = scene.image_size
+    for k in range(first, len(levels)):
+        where = level_scene(scene, levels[k])
+        h, w = where.image_size
+        here = level_options(options, levels[k].iters, fine.num_voxels / levels[k].grid.num_voxels * h * w / (H * W))
+        setup = build(where, here, device, levels[k].grid)
         x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
         problem, solver, l1 = make_problem(here.solver, setup)
-        result = hook.solve(Stage(level, len(grids)), setup, problem, solver, x0, {"level_records": list(records)})
+        result = hook.solve(Stage(k, len(levels)), setup, problem, solver, x0, {"level_records": list(records)})
         records.append(level_record(setup, l1, result))
         volume = setup.volume(result.x)
-        del setup, result, problem  # free this level's operator before the next is built
+        del setup, result, problem, where  # free this level's operator and images before the next
     return volume
 
 
 def level_record(setup: Setup, l1: float, result: SolveResult) -> dict:
-    """One grid level's entry in metrics.json's ``solver.levels``."""
-    return {"resolution": list(setup.grid.resolution), "voxels": int(setup.voxel_index.numel()),
+    """One level's entry in metrics.json's ``solver.levels``."""
+    H, W = setup.scene.image_size
+    return {"resolution": list(setup.grid.resolution), "image": [W, H], "voxels": int(setup.voxel_index.numel()),
             "l1": l1, "iterations": result.iterations, "seconds": result.seconds,
             "setup_seconds": setup.seconds, "objective": result.objective,
             "converged": result.converged}
@@ -393,9 +419,9 @@ def level_record(setup: Setup, l1: float, result: SolveResult) -> dict:
 
 def warm_start(scene: Scene, options: ReconstructionOptions, device: torch.device, setup: Setup) -> torch.Tensor | None:
     """x0 (M, C) for the final ``setup`` without a hook: the ``init`` run's density and/or the
-    solutions of ``grid.levels`` (see :func:`coarse_levels`); None for a cold start."""
-    grids = level_grids(list(options.grid.levels) or None, setup.grid)
-    volume = (init_volume(options.init, grids[0] if grids else setup.grid, setup.pixels.shape[1])
+    solutions of the levels before it (see :func:`coarse_levels`); None for a cold start."""
+    levels = levels_of(scene, options)
+    volume = (init_volume(options.init, levels[0].grid if levels else setup.grid, setup.pixels.shape[1])
               if options.init else None)
     volume = coarse_levels(scene, options, device, volume)
     return None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
@@ -418,17 +444,52 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     refining = options.calibration
     if refining.refine == "none" and not refining.file:
         return scene, None
+    rungs = ladder_rungs(scene, options.ladder, scene_grid(options.grid, scene))
+    if rungs:  # fitted on the coarsest rung's images, as a run at that downscale fits them
+        coarse = options.replace(ladder=LadderOptions(), grid=replace(options.grid, resolution=rungs[0].grid.resolution))
+        fitted, record = calibrated_scene(load_downscaled(scene, rungs[0].downscale), coarse, device)
+        own = scene.meta.get("calibrated_cameras", scene.cameras)
+        return (replace(scene, cameras=resized_cameras(fitted.cameras, *scene.image_size),
+                        meta={**scene.meta, "calibrated_cameras": own}),
+                {**record, "downscale": rungs[0].downscale})
     started = time.perf_counter()
+    if refining.frames == "auto":
+        refining = refining.for_capture(capture_length(scene))
+        options = options.replace(calibration=refining)
     if "calibrated_cameras" in scene.meta:
         scene = replace(scene, cameras=scene.meta["calibrated_cameras"],
                         meta={k: v for k, v in scene.meta.items() if k != "calibrated_cameras"})
     train, holdout = split_views(scene, options)
     grid = scene_grid(replace(options.grid, resolution=refining.resolution or options.grid.resolution), scene)
+    if refining.resolution:  # its own grid: refused naming its own option
+        check_grid_memory(grid, len(scene.views), device, memory_budget(device, options.projector.max_memory_gb),
+                          "calibration.resolution")
     step = float(options.projector.step)
     # the densities the cameras are fitted to: an unpenalised refit would fit part of the
     # cameras' errors into them (held-out train02, ScalarFlow frame 35: 31.84 dB against 33.23
     # with the gain), so they keep the penalised structure, only its level debiased
     fitting = options.replace(debias=DebiasOptions("gain")) if options.debias.method == "refit" else options
+
+    def capture_choice(cameras, sources: list[Scene]) -> dict | None:
+        """With select.auto: the selection record of the weights whose leave-one-view-out
+        PSNR, averaged over the calibration frames ``sources`` solved with the fitted
+        ``cameras``, is best (chosen with the capture's own cameras, in the fit's first solves,
+        the weights run stronger: the cameras' errors look like noise); None when off."""
+        if options.select.for_solver(options.solver.name) is None:
+            return None
+        tables = []
+        progress = Progress("the capture's weights on its calibration frames, with the fitted cameras", len(sources),
+                            "frame")
+        for source in sources:
+            fitted = replace(source, cameras=cameras_to(cameras, "cpu"))
+            tables.append(choose_weights(options, build(fitted, options, device, grid))[1]["candidates"])
+            progress.step(f"frame {source.meta.get('frame')}")
+        frames = [str(source.meta.get("frame")) for source in sources]
+        table = [{"overrides": rows[0]["overrides"], "psnr": sum(r["psnr"] for r in rows) / len(rows),
+                  "folds": {view: sum(r["folds"][view] for r in rows) / len(rows) for view in rows[0]["folds"]}}
+                 for rows in zip(*tables)]  # each averaged over the frames
+        best = max(range(len(table)), key=lambda k: table[k]["psnr"])
+        return {"chosen": dict(table[best]["overrides"]), "candidates": table, "frames": [int(f) for f in frames]}
 
     def frame_of(source: Scene) -> CalibrationFrame:
         images = source.images.to(device)
@@ -464,7 +525,7 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         found = CaptureCalibration(file_cameras(refining.file, scene, refined_views), [], "read",
                                    Path(refining.file))
     elif refining.frames:
-        found = capture_refinement(scene, refined_views, grid, options, device, frame_of)
+        found = capture_refinement(scene, refined_views, grid, options, device, frame_of, capture_choice)
     else:
         fitted = refine(cameras_to(scene.cameras, device), train, [this], grid, refining, step)
         found = CaptureCalibration(fitted.cameras, fitted.history, "fitted", None)
@@ -481,12 +542,31 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         "file": None if found.file is None else str(found.file), "rounds": found.history,
         "cameras": {scene.views[v]: r for v, r in zip(refined_views, report)},
     }
+    if found.selection:
+        record["selection"] = found.selection
     if initial is not None:
         before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
         record.update(train_psnr_before=mean_of(before["train"], "psnr"),
                       heldout_psnr_before=mean_of(before["heldout"], "psnr"))
     record["seconds"] = time.perf_counter() - started
     return refined, record
+
+
+def with_capture_weights(options: ReconstructionOptions, calibration: dict | None) -> ReconstructionOptions:
+    """With ``select.auto`` for the run's solver and a capture calibration that holds the weights
+    it chose on the calibration frames (``calibration["selection"]``): ``options`` with those
+    weights and ``select.auto`` off: weights are chosen once per capture, not at every frame."""
+    selection = (calibration or {}).get("selection")
+    if not selection or options.select.for_solver(options.solver.name) is None:
+        return options
+    weights = selection.get("chosen") if isinstance(selection, dict) else None
+    try:
+        solver = options.solver.with_values(**weights)
+    except (FlameReconError, TypeError) as err:
+        raise ConfigError(f"{calibration.get('file')}: its chosen weights {weights} do not fit solver "
+                          f"{options.solver.name} ({err}); delete the file to fit the capture again") from None
+    log.info("weights chosen once for the capture on calibration.frames %s: %s", calibration.get("frames"), weights)
+    return options.replace(solver=solver, select=replace(options.select, auto=False))
 
 
 def mean_of(per_view: dict[str, dict[str, float]], key: str) -> float:
@@ -520,30 +600,36 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     set_threads(options.threads)
     device = resolve_device(options.device if device is None else str(device))
     fine = scene_grid(options.grid, scene)  # camera refinement keeps the box
-    grids = level_grids(list(options.grid.levels) or None, fine)
-    level_iters(options.grid.level_iters, len(grids))  # refuse a bad budget before any solve
+    levels = levels_of(scene, options)  # refuses bad levels and budgets before any work
     resumed = hook.resume()
-    first = 0 if resumed is None else min(resumed.level, len(grids))
+    first = 0 if resumed is None else min(resumed.level, len(levels))
     records: list[dict] = [] if resumed is None else list(resumed.carry.get("level_records", []))
     volume = None if resumed is not None else init
     if volume is None and resumed is None and options.init:  # read (and refused) before any work
-        volume = init_volume(options.init, grids[0] if grids else fine, int(scene.images.shape[1]))
+        volume = init_volume(options.init, levels[0].grid if levels else fine, int(scene.images.shape[1]))
     check_workload(scene, options, fine, device)
     timing: dict = {}
     clock = time.perf_counter()
     scene, calibration = calibrated_scene(scene, options, device)
     if calibration is not None:
         timing["calibration"] = time.perf_counter() - clock
+    options = with_capture_weights(options, calibration)
+    capture_selection = (calibration or {}).get("selection") if not options.select.auto else None
     clock = time.perf_counter()
     volume = coarse_levels(scene, options, device, volume, first, hook, records)
-    if grids:
+    if levels:
         timing["coarse_levels"] = time.perf_counter() - clock
-    setup = build(scene, options, device, fine)
+    final = options
+    if options.ladder.final_iterations and any(level.downscale is not None for level in levels):
+        final = options.replace(solver=options.solver.with_values(max_iters=options.ladder.final_iterations))
+    setup = build(scene, final, device, fine)
     timing.update(setup=setup.seconds, assembly=setup.assembly_seconds)
     x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)
     del volume
-    found = fit(setup, options, x0, hook, Stage(len(grids), len(grids)), {"level_records": list(records)})
+    found = fit(setup, final, x0, hook, Stage(len(levels), len(levels)), {"level_records": list(records)})
+    if capture_selection and found.selection is None:  # the capture's, chosen on its calibration frames
+        found.selection = {**capture_selection, "source": f"the capture's calibration ({calibration.get('file')})"}
     timing.update(found.seconds)
-    if grids:
+    if levels:
         records.append(level_record(setup, found.l1, found.result))
     return Reconstruction(scene, setup, found, records, calibration, timing)

@@ -34,13 +34,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
 from kornia.geometry.liegroup import So3
 
+from flamerecon import interrupt
 from flamerecon.errors import ArgumentError
 from flamerecon.fit.option_rules import check_section
 from flamerecon.geometry.cameras import (
@@ -57,6 +58,12 @@ from flamerecon.progress import Progress
 
 #: parameters per camera: rotation (3), translation (3), log focal scale (1), principal point (2).
 N_PARAMS = 9
+
+
+def auto_frames(length: int) -> tuple[int, ...]:
+    """``calibration.frames: auto`` for a capture of ``length`` frames: the frames at 2/5 and
+    14/15 of it (30 and 69 of 75), the one frame of a capture of one."""
+    return tuple(sorted({round(f * (length - 1)) for f in (0.4, 14 / 15)}))
 
 
 @dataclass(frozen=True)
@@ -81,7 +88,9 @@ class RefineOptions:
       box's longest side; None: the reconstruction's). A coarser, smoother density cannot
       absorb the cameras' errors as a fine one does;
     - ``frames``: the frames of the capture whose training views the cameras are fitted to
-      (the cameras stand still); empty: the frame reconstructed. Fitted once per capture and
+      (the cameras stand still); empty: the frame reconstructed; ``auto``: two frames at 2/5
+      and 14/15 of the capture (ScalarFlow's 30 and 70 of 75, where the plume has risen; its
+      one frame for a capture of one, :func:`auto_frames`). Fitted once per capture and
       options, kept as a cameras.json file in ``folder`` and read back from it
       (:func:`flamerecon.fit.capture_calibration.capture_refinement`);
     - ``gauge``: how the refined cameras are held in the calibration's world frame: ``mean``
@@ -121,7 +130,7 @@ class RefineOptions:
     prior_principal_px: float = 5.0
     fit_against: str = "all"
     resolution: int | None = None
-    frames: tuple[int, ...] = ()
+    frames: tuple[int, ...] | str = ()
     gauge: str = "mean"
     rig: bool = False
     first_iterations: int | None = None
@@ -136,6 +145,10 @@ class RefineOptions:
         if self.rig and not self.frames:
             raise ArgumentError("calibration.rig: needs calibration.frames (the frames the rig is fitted to, none "
                                 "of them scored); set calibration.frames=[...] or calibration.rig=false")
+
+    def for_capture(self, length: int) -> RefineOptions:
+        """These options with ``frames: auto`` resolved for a capture of ``length`` frames."""
+        return replace(self, frames=auto_frames(length)) if self.frames == "auto" else self
 
     @property
     def active(self) -> list[int]:
@@ -425,6 +438,7 @@ def camera_step(fit: CameraFit | JointFit, theta: torch.Tensor, sizes: torch.Ten
     cost = objective(r, psi)
     mu, done, at_psi = 1e-3, 0, r  # at_psi: the residuals at psi, for rms_after
     for done in range(1, iterations + 1):
+        interrupt.check()
         H = torch.zeros(T * N_PARAMS, T * N_PARAMS, dtype=torch.float64)
         g = torch.zeros(T * N_PARAMS, dtype=torch.float64)
         Jd, rd = J.double().cpu(), r.double().cpu()
@@ -533,6 +547,7 @@ def refine(cameras: PinholeCamera, train: list[int], frames: list[CalibrationFra
         current = corrected_cameras(base, theta, pivot)
         fits = []
         for k, (frame, first) in enumerate(zip(frames, initial)):
+            interrupt.check()
             if others:
                 rest = [[j for j in range(T) if j != i] for i in range(T)]
                 volumes = [frame.solve([train[j] for j in js], camera_subset(current, js), None).detach()

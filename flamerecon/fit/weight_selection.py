@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from flamerecon import interrupt
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.operators.sparse import CsrOperator
 from flamerecon.solvers import LinearOperator, Problem, make_solver, resolve_l1
@@ -103,6 +104,7 @@ def select_weights(solver: str, options: dict, selection: SelectionOptions, debi
         outside = float((view_energy[k].double().sum() - (b_out.double() ** 2).sum()).clamp_min(0))
         x = None
         for c, overrides in enumerate(selection.candidates):
+            interrupt.check()
             x = solve_candidate(solver, {**options, **overrides}, selection.iterations, A_fit, b_fit,
                                 x, geometry)
             xd, _ = debias(debias_options, A_fit, b_fit, x)

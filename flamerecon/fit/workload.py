@@ -14,10 +14,10 @@ import torch
 
 from flamerecon.errors import MemoryBudgetError
 from flamerecon.fit.checks import DENSE_BYTES_PER_VOXEL, check_grid_memory, memory_budget
-from flamerecon.fit.memory import format_bytes
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.geometry.cameras import pixel_rays
 from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.machine import format_bytes
 from flamerecon.operators.projector import (
     Rays,
     march_box,
@@ -32,6 +32,9 @@ LATTICE = 64
 #: bytes per ray a run holds at once: the ray (24), its box entry and exit (8), indices (16),
 #: and per channel its pixel, residuals and renders (24)
 BYTES_PER_RAY = 48
+#: ray samples per pass above which a run is told it will be long, with the setting that shortens
+#: it: a full ScalarFlow frame on 256 cells has 2.6e9 (logged), its 1/4 frame on 64 cells 4.2e7
+LONG_RUN_SAMPLES = 1e9
 BYTES_PER_RAY_CHANNEL = 24
 @dataclass(frozen=True)
 class Workload:
@@ -93,4 +96,11 @@ def check_workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid
             f"{format_bytes(budget)} is available on {device}; work on smaller images (a larger scene.downscale, "
             "or scene.width/height), a smaller grid.resolution, or allow more with projector.max_memory_gb")
     log.info("estimate: %s on %s", found, device)
+    if found.samples > LONG_RUN_SAMPLES:
+        H, W = scene.image_size
+        rungs = "" if options.ladder.rungs else ("; a ladder (ladder.rungs=[[4,128],[2,192]]) solves coarser levels "
+                                                 "first and fits the cameras at 1/4")
+        log.warning("a large frame: %d views of %dx%d px, %.3g ray samples per pass: the camera fit and each solve "
+                    "take minutes here; scene.downscale=%d works on 1/%d of the pixels%s", scene.num_views, W, H,
+                    found.samples, 4 if min(H, W) >= 1000 else 2, 16 if min(H, W) >= 1000 else 4, rungs)
     return found

@@ -59,6 +59,17 @@ def cameras_to(cams: PinholeCamera, device) -> PinholeCamera:
     )
 
 
+def resized_cameras(cams: PinholeCamera, height: int, width: int) -> PinholeCamera:
+    """The cameras for images resized to ``height`` x ``width`` pixels: fx, cx scaled by the
+    width ratio and fy, cy by the height ratio (pixel centres at +0.5, so a continuous pixel
+    coordinate scales exactly with the image; the same map ``scene.downscale`` applies to K),
+    poses unchanged."""
+    B = cams.batch_size
+    scale = torch.stack([width / cams.width, height / cams.height, torch.ones_like(cams.width)], -1)  # (B, 3)
+    K = K_of(cams) * scale[:, :, None]
+    return make_cameras(K, cams.extrinsics, torch.full((B,), float(height)), torch.full((B,), float(width)))
+
+
 def K_of(cams: PinholeCamera) -> torch.Tensor:
     """Intrinsics (B, 3, 3)."""
     return cams.intrinsics[:, :3, :3]

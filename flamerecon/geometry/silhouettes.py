@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from kornia.geometry.camera import PinholeCamera
 
+from flamerecon.errors import ConfigError
 from flamerecon.geometry.cameras import camera_centers, project_points
 from flamerecon.geometry.grid import VoxelGrid
 
@@ -79,6 +80,7 @@ def silhouettes(
     blur_px: float = 0.0,
     speck_px: int = 1,
     close_px: int = 0,
+    field: str = "silhouette",
 ) -> torch.Tensor:
     """Binary silhouettes (B, H, W) bool of images (B, C, H, W) in [0, 1].
 
@@ -92,11 +94,20 @@ def silhouettes(
       dropped (unlike an opening, this keeps thin tongue tips attached to the flame);
     - ``close_px``: radius of the closing that fills pinholes; ``dilate_px``: final safety
       margin in pixels.
+
+    A pixel size larger than the images' larger side is a :class:`~flamerecon.errors.ConfigError`
+    naming ``<field>.<option>`` (its kernel would not fit in memory and could change nothing).
     """
     if images.dim() != 4:
         raise ValueError(
             f"silhouettes: images must be (B, C, H, W), got shape {tuple(images.shape)}"
         )
+    H, W = images.shape[-2:]
+    for name, size in (("speck_px", speck_px), ("close_px", close_px), ("dilate_px", dilate_px),
+                       ("blur_px", blur_px)):
+        if size > max(H, W):
+            raise ConfigError(f"{field}.{name}: got {size}; for {W}x{H} images it must be at most {max(H, W)} "
+                              "px (a kernel wider than the image changes nothing more)")
     if method not in SILHOUETTE_METHODS:
         raise ValueError(f"silhouette.method: '{method}' is not one of {SILHOUETTE_METHODS}")
     if method == "threshold" and threshold is None:

@@ -47,12 +47,20 @@ def dottest(op: LinearOperator, x: torch.Tensor | None = None, y: torch.Tensor |
     return lhs, rhs
 
 
+#: products A^T A v for the norm of an operator whose products are costly
+#: (``costly_products``, the matrix-free projector): the bound after 3 is within 10% of the norm
+#: on the projector's tests, where 30 power iterations would march every ray 60 times
+COSTLY_NORM_ITERS = 3
+
+
 def norm_sq(op: LinearOperator, device=None, dtype: torch.dtype = torch.float32,
             iters: int = 30, seed: int = 0) -> float:
     """||A||_2^2 (largest eigenvalue of A^T A) by ``iters`` power iterations from a uniform
-    random start drawn from ``seed``, in ``dtype`` on ``device``. Cached on the operator per
-    (device, dtype, iters, seed), so that a second solve on the same operator does not pay for
-    it again."""
+    random start drawn from ``seed``, in ``dtype`` on ``device``; for an operator with
+    ``costly_products`` (its entries nonnegative) an upper bound after at most
+    :data:`COSTLY_NORM_ITERS` products instead (:func:`collatz_wielandt_bound`). Cached on the
+    operator per (device, dtype, iters, seed), so that a second solve on the same operator does
+    not pay for it again."""
     key = (str(torch.device(device)) if device is not None else None, dtype, int(iters), int(seed))
     cache = getattr(op, "_norm_sq_cache", None)
     if cache is None:
@@ -62,13 +70,34 @@ def norm_sq(op: LinearOperator, device=None, dtype: torch.dtype = torch.float32,
         except AttributeError:  # an operator without instance attributes: no cache
             pass
     if key not in cache:
-        cache[key] = _power_iteration(op, device, dtype, iters, seed)
+        cache[key] = (collatz_wielandt_bound(op, device, dtype, min(int(iters), COSTLY_NORM_ITERS))
+                      if getattr(op, "costly_products", False) else _power_iteration(op, device, dtype, iters, seed))
     return cache[key]
 
 
 def norm(op: LinearOperator, **options) -> float:
     """||A||_2, the square root of :func:`norm_sq` (same options, same cache)."""
     return norm_sq(op, **options) ** 0.5
+
+
+def collatz_wielandt_bound(op: LinearOperator, device=None, dtype: torch.dtype = torch.float32,
+                           iters: int = COSTLY_NORM_ITERS) -> float:
+    """An upper bound of ||A||_2^2 for A with nonnegative entries (a projector): with B = A^T A
+    (nonnegative, symmetric) and any v > 0, ||A||^2 = rho(B) <= max_m (B v)_m / v_m (Collatz-
+    Wielandt), from v = 1, then along ``iters`` power iterations, which tighten it. Voxels whose
+    column is 0 drop out (their v_m becomes 0; they are decoupled from the rest of B). A safe
+    step from ``2 iters`` products; the first is the separable-surrogate bound max_m (A^T A 1)_m."""
+    v = torch.ones(op.shape[1], 1, dtype=dtype, device=device)
+    bound = 0.0
+    for _ in range(max(int(iters), 1)):
+        w = op.adjoint(op.forward(v))
+        seen = v > 0
+        bound = float((w[seen] / v[seen]).max()) if bool(seen.any()) else 0.0
+        top = float(w.max())
+        if top <= 0.0:
+            return 0.0
+        v = w / top
+    return bound
 
 
 def _power_iteration(op: LinearOperator, device, dtype: torch.dtype, iters: int, seed: int) -> float:

@@ -19,13 +19,19 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.camera import PinholeCamera
 
+from flamerecon import interrupt
 from flamerecon.geometry.cameras import cameras_to, pixel_centers, pixel_rays, project_points
 from flamerecon.geometry.grid import VoxelGrid
-from flamerecon.operators.sparse import CsrOperator, stable_argsort
+from flamerecon.operators.sparse import TRANSPOSE_BLOCK, CsrOperator, GrowingArray, stable_argsort
+from flamerecon.progress import Progress
 
 #: samples per chunk when marching (bounds memory: about 100 bytes per sample and channel).
 CHUNK_SAMPLES = 4_000_000
-#: ray samples per chunk when assembling (about 400 bytes each at the peak, see below)
+#: a march or an assembly that lasts longer than this many seconds says how far it is, every
+#: :data:`PROGRESS_EVERY` seconds (a full-resolution frame's assembly takes about 25 s)
+PROGRESS_AFTER = 5.0
+PROGRESS_EVERY = 10.0
+#: ray samples per chunk when assembling (:data:`BYTES_PER_CHUNK_SAMPLE` each at the peak)
 ASSEMBLY_CHUNK_SAMPLES = 2_000_000
 
 
@@ -196,17 +202,21 @@ def _chunks(rays: Rays, grid: VoxelGrid, step: float):
 
 def integrate_dense(
     volume: torch.Tensor, grid: VoxelGrid, rays: Rays, step: float = 0.5,
-    box: tuple[torch.Tensor, torch.Tensor] | None = None,
+    box: tuple[torch.Tensor, torch.Tensor] | None = None, what: str = "marching rays",
 ) -> torch.Tensor:
     """Line integrals (R, C) of a dense volume (C, nz, ny, nx) along ``rays``; differentiable.
-    ``box`` may narrow the march to where the volume can be nonzero (see :func:`support_box`)."""
+    ``box`` may narrow the march to where the volume can be nonzero (see :func:`support_box`);
+    ``what`` names the march in its progress lines (a long one only)."""
     C = volume.shape[0]
     out = []
     frame = grid.normalized_frame(rays.origins.device)
+    progress = Progress(what, len(rays), "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
     for sl, smp in packed_samples(rays, grid, step, box, frame=frame):
         weighted = _sample(volume, smp.points) * smp.length  # (C, P); points as x, y, z in [-1, 1]
         sums = weighted.new_zeros(C, sl.stop - sl.start).index_add_(1, smp.ray, weighted)
         out.append(sums.T)
+        progress.update(sl.stop)
+        interrupt.check()  # a stop signal inside a solve ends a long march within a block
     if not out:
         return volume.new_zeros(0, C)
     return torch.cat(out, 0)
@@ -342,9 +352,12 @@ def assemble(
     box = support_box(grid, voxel_index.to(device))
     live = cells_touching(grid, voxel_index.to(device))
     top = torch.tensor(live.shape[::-1], device=device) - 1  # (nx, ny, nz)
-    rows_all, cols_all, vals_all = [], [], []
+    N = len(rays)
+    counts = torch.zeros(N, dtype=torch.long, device=device)  # entries of each row
+    cols_out, vals_out = GrowingArray(torch.int32, device), GrowingArray(torch.float32, device)  # row by row
     shape = torch.tensor(live.shape, device=device)
     frame = grid.index_frame(device)
+    progress = Progress("assembling the operator", N, "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
     for sl, smp in packed_samples(rays, grid, step, box, ASSEMBLY_CHUNK_SAMPLES, frame):
         u = smp.points.T.contiguous()  # (3, P) continuous voxel coordinates
         i0f = torch.floor(u)
@@ -368,33 +381,29 @@ def assemble(
         order = stable_argsort(key)
         key, val = key[order], val[entry[order]]
         if key.numel() > 1 and bool((key[1:] == key[:-1]).any()):  # a run broken by rounding
-            key, counts = torch.unique_consecutive(key, return_counts=True)
-            seg = torch.repeat_interleave(torch.arange(key.numel(), device=device), counts)
+            key, repeats = torch.unique_consecutive(key, return_counts=True)
+            seg = torch.repeat_interleave(torch.arange(key.numel(), device=device), repeats)
             val = torch.zeros(key.numel(), dtype=val.dtype, device=device).index_add_(0, seg, val)
-        rows_all.append(key // M + sl.start)
-        cols_all.append(key % M)
-        vals_all.append(val)
-    if rows_all:
-        rows, cols, vals = torch.cat(rows_all), torch.cat(cols_all), torch.cat(vals_all)
-    else:
-        rows = cols = torch.zeros(0, dtype=torch.long, device=device)
-        vals = torch.zeros(0, device=device)
-    return CsrOperator.from_sorted_coo(rows, cols, vals, (len(rays), M))
+        counts[sl] = torch.bincount(key // M, minlength=sl.stop - sl.start)
+        cols_out.append((key % M).to(torch.int32))  # columns ascending within each row
+        vals_out.append(val)
+        del smp, u, i0f, i0, idx, w, root, entry, key, order, val  # before the next chunk's
+        progress.update(sl.stop)
+        interrupt.check()
+    crow = torch.zeros(N + 1, dtype=torch.long, device=device)
+    torch.cumsum(counts, 0, out=crow[1:])
+    return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, M))
 
 
-#: nonzeros of the assembled operator per ray sample inside the hull's support box. Measured on
-#: the synthetic scene: 1.51 (16^3 grid, 48x36 images), 1.09 (32^3, 160x120), 0.91 (64^3,
-#: 320x240), 0.82 (128^3, 320x240): neighbouring samples share corners, and support-box samples
-#: outside the hull add none. 1.0 is within 0.7x-1.2x of the truth there, high for large grids.
-NNZ_PER_SAMPLE = 1.0
+#: rays assembled to estimate the operator's size (:func:`assembled_memory`): evenly spread over
+#: the views, they put the nonzeros within about 2% of the full count (ScalarFlow, 1/4 to full
+#: resolution, 128- to 256-cell grids) at under 1% of the assembly's time
+ESTIMATE_RAYS = 4096
 #: bytes of temporaries per ray sample of one chunk while assembling (points, 8 corner indices
-#: and weights, run roots, sort keys). With the two constants below the peak estimate was 0.8x
-#: (16^3, 43 MB measured) to 1.7x (128^3, 1.26 GB) the peak RSS growth of the padded march
-#: before packed samples; with them, 2.3x at 64^3 (629 MB measured against 776 MB before).
-BYTES_PER_CHUNK_SAMPLE = 450
-#: bytes per nonzero at the end of assembly: COO triplets (int64 row and column, float32 value)
-#: concatenated, the CSR copies of A and A^T (int32 column + float32 value each) and the sort.
-BYTES_PER_NNZ_PEAK = 80
+#: and weights, run roots, sort keys): measured 110-130 (ScalarFlow, 2e6-sample chunks)
+BYTES_PER_CHUNK_SAMPLE = 160
+#: bytes of temporaries per entry of a block of the transpose (:func:`transpose_csr`)
+BYTES_PER_TRANSPOSE_ENTRY = 48
 
 
 @dataclass
@@ -409,33 +418,34 @@ class OperatorMemory:
 def assembled_memory(
     grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5
 ) -> OperatorMemory:
-    """Estimate, without assembling, what :func:`assemble` would store and its peak memory.
-
-    Counts the ray samples inside the hull's support box (a slab test per ray, O(rays)); the
-    nonzeros are ``NNZ_PER_SAMPLE`` per sample, stored twice (A and A^T) at 8 bytes each.
-    """
-    device = rays.origins.device
+    """Estimate what :func:`assemble` would store and its peak memory beyond what is held
+    before it, from the exact assembly of :data:`ESTIMATE_RAYS` rays spread evenly over
+    ``rays``: the nonzeros scaled to every ray, A and A^T at (4 + 4) bytes each, and at the
+    peak the larger of one chunk's temporaries and one transpose block's."""
     N, M = len(rays), int(voxel_index.numel())
     if N == 0 or M == 0:
         return OperatorMemory(0, 4 * (N + M + 2), 4 * (N + M + 2))
-    box = support_box(grid, voxel_index.to(device))
-    ds = float(step) * float(grid.voxel_size().min())
-    per_ray = torch.cat([
-        ((t_far - t_near).clamp_min(0.0) / ds).ceil()
-        for t_near, t_far in (ray_box(chunk, *box) for _, chunk in _chunks(rays, grid, step))
-    ])
-    chunk_samples = min(float(per_ray.sum()), max(float(ASSEMBLY_CHUNK_SAMPLES), float(per_ray.max())))
-    nnz = int(float(per_ray.sum()) * NNZ_PER_SAMPLE)
-    operator_bytes = 2 * 8 * nnz + 4 * (N + M + 2)
-    peak = operator_bytes + BYTES_PER_NNZ_PEAK * nnz + int(BYTES_PER_CHUNK_SAMPLE * chunk_samples)
-    return OperatorMemory(nnz, operator_bytes, peak)
+    stride = max(1, N // ESTIMATE_RAYS)
+    subset = rays[torch.arange(0, N, stride, device=rays.origins.device)]
+    nnz = int(assemble(grid, subset, voxel_index, step).nnz * N / len(subset))
+    entry = 4 + (4 if nnz < 2**31 else 8)  # value + column index, per copy
+    operator_bytes = 2 * entry * nnz + 4 * (N + M + 2)
+    chunk = min(nnz, ASSEMBLY_CHUNK_SAMPLES)  # about a sample per nonzero
+    transient = max(BYTES_PER_CHUNK_SAMPLE * chunk, BYTES_PER_TRANSPOSE_ENTRY * min(nnz, TRANSPOSE_BLOCK))
+    return OperatorMemory(nnz, operator_bytes, operator_bytes + transient)
 
 
 class MatrixFreeOperator:
     """Rays x hull voxels without storing weights: scatter into the grid, ``grid_sample``.
 
-    ``forward`` (M, C) -> (N, C) is differentiable; ``adjoint`` is its vector-Jacobian product.
+    ``forward`` (M, C) -> (N, C) is differentiable; ``adjoint`` is its vector-Jacobian product,
+    taken block by block of ray samples (about :data:`CHUNK_SAMPLES` each), so both products
+    hold one block's samples at a time whatever the number of rays. Every product marches
+    every ray again: about 100x the time of the assembled operator's (docs/results.md), which
+    :func:`~flamerecon.operators.norm_sq` and the solvers read from :attr:`costly_products`.
     """
+
+    costly_products = True
 
     def __init__(self, grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5):
         self.grid, self.rays, self.step = grid, rays, float(step)
@@ -447,10 +457,19 @@ class MatrixFreeOperator:
         return integrate_dense(self.grid.dense(x, self.voxel_index), self.grid, self.rays, self.step, self.box)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        x = torch.zeros(self.shape[1], y.shape[1], dtype=y.dtype, device=y.device, requires_grad=True)
+        C = y.shape[1]
+        volume = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device, requires_grad=True)
+        total = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device)
+        frame = self.grid.normalized_frame(y.device)
+        progress = Progress("the adjoint's march", self.shape[0], "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
         with torch.enable_grad():
-            (grad,) = torch.autograd.grad(self.forward(x), x, grad_outputs=y)
-        return grad
+            for sl, smp in packed_samples(self.rays, self.grid, self.step, self.box, frame=frame):
+                weighted = _sample(volume, smp.points) * smp.length  # (C, P)
+                (grad,) = torch.autograd.grad(weighted, volume, grad_outputs=y[sl].index_select(0, smp.ray).T)
+                total += grad
+                progress.update(sl.stop)
+                interrupt.check()
+        return total.reshape(C, -1)[:, self.voxel_index].T.contiguous()
 
 
 #: voxels per side of the blocks whose projections bound where a render can be nonzero
@@ -514,7 +533,8 @@ def render_image(
         seen = footprint(nonzero, grid, cameras_to(cams, volume.device)).reshape(-1)
         rays, _ = camera_rays(cams, seen.reshape(B, H, W).to(cams.intrinsics.device))
         pix = volume.new_zeros(B * H * W, C)
-        pix[seen] = integrate_dense(volume, grid, rays.to(volume.device), step, box)
+        pix[seen] = integrate_dense(volume, grid, rays.to(volume.device), step, box,
+                                    f"rendering {B} view{'s' if B != 1 else ''} of {W}x{H} px")
     return pix.T.reshape(C, B, H, W).transpose(0, 1).contiguous()
 
 

@@ -18,8 +18,96 @@ warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta 
 warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
 
 
-def _csr32(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch.Tensor:
-    return torch.sparse_csr_tensor(crow.to(torch.int32), col.to(torch.int32), val, size=shape)
+def index_dtype(nnz: int) -> torch.dtype:
+    """The index type of a CSR matrix with ``nnz`` entries: int32 (half the bytes; MKL and
+    cuSPARSE take it) below 2^31 entries, else int64."""
+    return torch.int32 if nnz < 2**31 else torch.long
+
+
+def _csr(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> torch.Tensor:
+    dtype = index_dtype(int(val.numel()))
+    return torch.sparse_csr_tensor(crow.to(dtype), col.to(dtype), val, size=shape)
+
+
+class GrowingArray:
+    """A 1-D tensor appended to piece by piece without a second copy of it at any time.
+
+    On the CPU the pieces go into a NumPy array that grows by half its size in place
+    (``ndarray.resize``: ``realloc``, which moves the pages of a large block without copying
+    them); a list of pieces concatenated at the end would need the pieces and the result at
+    once, and freed pieces stay resident in the allocator's heap. Elsewhere (CUDA) the pieces
+    are concatenated at the end."""
+
+    def __init__(self, dtype: torch.dtype, device: torch.device):
+        self.device = torch.device(device)
+        self.size = 0
+        self.pieces: list[torch.Tensor] = []
+        self.array = np.empty(0, torch.empty(0, dtype=dtype).numpy().dtype) if self.device.type == "cpu" else None
+
+    def append(self, piece: torch.Tensor) -> None:
+        if self.array is None:
+            self.pieces.append(piece)
+        else:
+            n = int(piece.numel())
+            if self.size + n > self.array.size:
+                self.array.resize(max(self.size + n, self.array.size * 3 // 2, 1 << 16), refcheck=False)
+            self.array[self.size:self.size + n] = piece.numpy()
+        self.size += int(piece.numel())
+
+    def tensor(self) -> torch.Tensor:
+        """The appended values (size,); the buffer is handed over (append no more)."""
+        if self.array is None:
+            out = torch.cat(self.pieces) if self.pieces else torch.zeros(0, device=self.device)
+            self.pieces = []
+            return out
+        self.array.resize(self.size, refcheck=False)
+        out, self.array = torch.from_numpy(self.array), None
+        return out
+
+
+#: entries per block when a transpose is built (:func:`transpose_csr`): its temporaries are
+#: about 40 bytes per entry of a block
+TRANSPOSE_BLOCK = 4_000_000
+
+
+def transpose_csr(crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, n_cols: int
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The CSR arrays of A^T from those of A (N, ``n_cols``): column pointers (n_cols + 1,),
+    row indices and values (nnz,), rows ascending within each column, in A's index type.
+
+    A counting sort over blocks of A's rows (about :data:`TRANSPOSE_BLOCK` entries each): each
+    block's entries are sorted by column (stable, so rows stay ascending) and written after the
+    earlier blocks' entries of the same column. Memory: the result plus one block's
+    temporaries, never a second copy of A."""
+    device, nnz = val.device, int(val.numel())
+    dtype = index_dtype(nnz)
+    N = int(crow.numel()) - 1
+    counts = torch.bincount(col, minlength=n_cols) if nnz else torch.zeros(n_cols, dtype=torch.long, device=device)
+    ccol = torch.zeros(n_cols + 1, dtype=torch.long, device=device)
+    torch.cumsum(counts, 0, out=ccol[1:])
+    free = ccol[:-1].clone()  # the next slot of each column
+    row_t = torch.empty(nnz, dtype=dtype, device=device)
+    val_t = torch.empty_like(val)
+    crow_l = crow.long()
+    r0 = 0
+    while r0 < N:
+        e0 = int(crow_l[r0])
+        r1 = int(torch.searchsorted(crow_l, e0 + TRANSPOSE_BLOCK, right=True)) - 1
+        r1 = min(N, max(r1, r0 + 1))
+        e1 = int(crow_l[r1])
+        c = col[e0:e1].long()
+        cs, order = torch.sort(c, stable=True)
+        here = torch.bincount(c, minlength=n_cols)
+        first = torch.cumsum(here, 0) - here  # each column's first place in the block's order
+        rank = torch.arange(e1 - e0, device=device) - first.index_select(0, cs)
+        slot = free.index_select(0, cs) + rank
+        rows = torch.repeat_interleave(torch.arange(r0, r1, device=device, dtype=dtype), crow_l[r0 + 1:r1 + 1] -
+                                       crow_l[r0:r1])
+        row_t[slot] = rows.index_select(0, order)
+        val_t[slot] = val[e0:e1].index_select(0, order)
+        free += here
+        r0 = r1
+    return ccol.to(dtype), row_t, val_t
 
 
 def stable_argsort(keys: torch.Tensor) -> torch.Tensor:
@@ -62,7 +150,7 @@ class CsrOperator:
     """
 
     def __init__(self, A: torch.Tensor, AT: torch.Tensor):
-        """Wrap CSR matrices A (N, M) and A^T (M, N) with int32 indices."""
+        """Wrap CSR matrices A (N, M) and A^T (M, N) (int32 indices below 2^31 entries)."""
         self.A, self.AT = A, AT
         self.shape = (int(A.shape[0]), int(A.shape[1]))
 
@@ -80,12 +168,16 @@ class CsrOperator:
         N, M = int(shape[0]), int(shape[1])
         crow = torch.zeros(N + 1, dtype=torch.long, device=values.device)
         crow[1:] = torch.cumsum(torch.bincount(rows, minlength=N), 0)
-        A = _csr32(crow, cols, values, (N, M))
-        order = stable_argsort(cols)  # row order is kept within each column
-        ccol = torch.zeros(M + 1, dtype=torch.long, device=values.device)
-        ccol[1:] = torch.cumsum(torch.bincount(cols, minlength=M), 0)
-        AT = _csr32(ccol, rows[order], values[order], (M, N))
-        return cls(A, AT)
+        return cls.from_csr(crow, cols, values, (N, M))
+
+    @classmethod
+    def from_csr(cls, crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> CsrOperator:
+        """Build from the CSR arrays of A (N, M): row pointers (N + 1,), column indices and
+        values (nnz,), columns ascending within each row; A^T by :func:`transpose_csr`."""
+        N, M = int(shape[0]), int(shape[1])
+        A = _csr(crow, col, val, (N, M))
+        ccol, row_t, val_t = transpose_csr(A.crow_indices(), A.col_indices(), A.values(), M)
+        return cls(A, _csr(ccol, row_t, val_t, (M, N)))
 
     def rows(self, index: torch.Tensor) -> CsrOperator:
         """The operator of the rows ``index`` (R,) ascending: (R, M), A and A^T sliced from the
@@ -97,8 +189,10 @@ class CsrOperator:
         row = torch.repeat_interleave(torch.arange(index.numel(), device=self.device), counts)
         offset = torch.cumsum(counts, 0) - counts
         entry = starts.index_select(0, row) + torch.arange(row.numel(), device=self.device) - offset.index_select(0, row)
-        return CsrOperator.from_sorted_coo(row, self.A.col_indices().long()[entry], self.A.values()[entry],
-                                           (index.numel(), self.shape[1]))
+        crow_r = torch.zeros(index.numel() + 1, dtype=torch.long, device=self.device)
+        torch.cumsum(counts, 0, out=crow_r[1:])
+        return CsrOperator.from_csr(crow_r, self.A.col_indices()[entry], self.A.values()[entry],
+                                    (index.numel(), self.shape[1]))
 
     @property
     def nnz(self) -> int:

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from flamerecon.errors import FlameReconError, output_error
+from flamerecon.errors import FlameReconError, OutputError, output_error
 
 # Permissions of a newly created file under this process's umask (read once: os.umask can only
 # be read by setting it).
@@ -110,6 +110,19 @@ def make_folder(path: str | os.PathLike) -> Path:
     except OSError as err:
         raise output_error(folder, err) from err
     return folder
+
+
+def make_subfolder(root: str | os.PathLike, name: str) -> Path:
+    """``root/name`` made as a folder inside ``root`` (a run folder): an
+    :class:`~flamerecon.errors.OutputError` when it is a symbolic link (writing through it would
+    replace files outside ``root``) or a file."""
+    folder = Path(root) / name
+    if folder.is_symlink():
+        raise OutputError(f"{folder}: is a symbolic link (to {os.readlink(folder)}); flamerecon writes only "
+                          f"inside the run folder: remove the link (or write the run elsewhere)")
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{folder}: is a file where flamerecon writes a folder; move it away")
+    return make_folder(folder)
 
 
 def disk_full(folder: str | os.PathLike, min_free: int = 1 << 20) -> bool:
@@ -218,6 +231,12 @@ def _json_default(value: Any) -> Any:
         raise TypeError(f"cannot write {type(value).__name__} to JSON") from None
 
 
+def is_temporary(path: Path) -> bool:
+    """Whether ``path`` is named as :func:`atomic_path`'s temporary files are."""
+    match = _TEMP_NAME.match(path.name)
+    return bool(match) and (match["suffix"] or "") == Path(match["dest"]).suffix
+
+
 def stale_temporaries(folder: str | os.PathLike, min_age_s: float = 60.0) -> list[Path]:
     """Temporary files that :func:`atomic_path` left in ``folder`` when its process was killed
     outright (SIGKILL, power loss), untouched for at least ``min_age_s`` seconds so that a
@@ -225,10 +244,7 @@ def stale_temporaries(folder: str | os.PathLike, min_age_s: float = 60.0) -> lis
     now = time.time()
     found = []
     for entry in Path(folder).iterdir():
-        match = _TEMP_NAME.match(entry.name)
-        if not (match and entry.is_file()):
-            continue
-        if (match["suffix"] or "") != Path(match["dest"]).suffix:
+        if not (is_temporary(entry) and entry.is_file()):
             continue
         if now - entry.stat().st_mtime >= min_age_s:
             found.append(entry)

@@ -10,7 +10,6 @@ from float32 tensors as exact decimals, so a file read back gives the very same 
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.errors import ConfigError
 from flamerecon.geometry.cameras import K_of, make_cameras
+from flamerecon.plain import json_value
 
 
 def camera_records(names: Sequence[str], cameras: PinholeCamera, train: Sequence[int],
@@ -48,11 +48,11 @@ def read_camera_file(path: str | Path, field: str = "calibration.file") -> dict:
     naming ``field`` and the file when it is missing or not a cameras.json."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = json_value(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"{field}: {path} does not exist; give a cameras.json (a run's, or a "
                           "capture's calibration file)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+    except (OSError, ValueError) as err:
         raise ConfigError(f"{field}: {path} is not a readable JSON file ({err}); give a cameras.json") from None
     if not isinstance(data, dict) or not isinstance(data.get("cameras"), list):
         raise ConfigError(f"{field}: {path} has no \"cameras\" list; give a cameras.json")

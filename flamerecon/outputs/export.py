@@ -12,6 +12,8 @@ Exports (all written atomically):
   time-series index over several of them; needs the optional ``vtk`` package;
 - NRRD ``.nrrd`` with space origin and directions; needs the optional ``pynrrd`` package;
 - raw little-endian float32 ``.raw`` with a JSON header ``.raw.json`` that says how to read it;
+- OpenVDB ``.vdb`` float grids in the world frame (Blender, Houdini;
+  :mod:`flamerecon.outputs.vdb`, no extra package);
 - an iso-surface mesh as ``.ply`` and/or ``.obj`` (:mod:`flamerecon.outputs.mesh`, needs the
   optional ``scikit-image`` package); ``mesh`` names both, ``all`` every format.
 """
@@ -29,13 +31,14 @@ import numpy as np
 from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.outputs.atomic import atomic_path, save_npz_atomic, write_json_atomic
 from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface, marching_cubes, write_obj, write_ply
+from flamerecon.outputs.vdb import write_vdb
 
 DENSITY_FILE = "density.npz"
 #: a run's confidence volume, in density.npz's format (:mod:`flamerecon.evaluate.uncertainty`)
 UNCERTAINTY_FILE = "uncertainty.npz"
-FORMATS = ("vti", "nrrd", "raw", "ply", "obj")
+FORMATS = ("vti", "nrrd", "raw", "vdb", "ply", "obj")
 #: the formats of a volume (the others are its iso-surface)
-VOLUME_FORMATS = ("vti", "nrrd", "raw")
+VOLUME_FORMATS = ("vti", "nrrd", "raw", "vdb")
 #: names for several formats at once
 ALIASES = {"all": FORMATS, "mesh": ("ply", "obj")}
 _RESERVED = ("density", "bbox_min", "bbox_max", "views")
@@ -363,8 +366,8 @@ def export_density(
     volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO,
     names: Sequence[str] | None = None,
 ) -> list[Path]:
-    """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.ply``
-    and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
+    """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.vdb``,
+    ``.ply`` and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
     see :func:`~flamerecon.outputs.mesh.iso_surface`); ``names``: the channels' (default
     :func:`channel_names`)."""
     formats = _check_formats(formats)
@@ -377,6 +380,11 @@ def export_density(
         written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args, names))
     if "raw" in formats:
         written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, names, views=volume.views))
+    if "vdb" in formats:
+        written.append(write_vdb(stem.with_name(stem.name + ".vdb"), volume.density,
+                                 sample_origin(*args[1:], volume.density.shape),
+                                 voxel_size(*args[1:], volume.density.shape),
+                                 names or channel_names(len(volume.density))))
     meshes = [(f, w) for f, w in (("ply", write_ply), ("obj", write_obj)) if f in formats]
     if meshes:
         vertices, faces = iso_surface(*args, iso=iso)
@@ -389,7 +397,7 @@ def export_density(
 def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO) -> list[Path]:
     """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``, and its
     confidence volume ``uncertainty.npz``, when the run has one, as ``uncertainty.<format>``
-    for the volume formats (vti, nrrd, raw)."""
+    for the volume formats (vti, nrrd, raw, vdb)."""
     run_dir = Path(run_dir)
     written = export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
     volumes = [f for f in _check_formats(formats) if f in VOLUME_FORMATS]

@@ -38,14 +38,16 @@ TITLE_PX, BAR_PX, BAR_LABEL_PX = 14, 8, 40
 
 
 def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "",
+                   psnr: float | None = None, black: float | None = None,
                    sigma: torch.Tensor | None = None) -> np.ndarray:
-    """A held-out view read without a legend: panels "rendered <view>" | "captured" |
-    "|error|" (| "predicted sigma" with ``sigma``, the confidence image (C, H, W) of the
-    render: :mod:`flamerecon.evaluate.uncertainty`) under a title strip of :data:`TITLE_PX`;
-    the error and sigma (means over channels, the images' units) share one scale in the inferno
-    colour map, whose colour bar (0 at the bottom, the largest of them at the top) is to their
-    right: (TITLE_PX + H, n W + BAR_PX + BAR_LABEL_PX, 3) uint8 with n = 3 or 4, from images
-    (C, H, W) in [0, 1]."""
+    """A held-out view read without a legend: panels "rendered <view>" (with its ``psnr`` and
+    the black image's, dB, when given) | "captured" | "|error|, image units" (| "predicted
+    sigma" with ``sigma``, the render's confidence image (C, H, W):
+    :mod:`flamerecon.evaluate.uncertainty`) under a title strip of :data:`TITLE_PX` (two lines
+    of it where a title is wider than its panel); the error and sigma (means over channels, in
+    the images' units, 1 = white) share the inferno colour map and its colour bar (0 at the
+    bottom, the largest of them at the top) to their right: (strip + H, n W + BAR_PX +
+    BAR_LABEL_PX, 3) uint8 with n = 3 or 4, from images (C, H, W) in [0, 1]."""
     r, c = to_display(rendered), to_display(captured)
     error = (rendered.detach().float().cpu().clamp(0, 1) - captured.detach().float().cpu()).abs().mean(0)
     spread = None if sigma is None else sigma.detach().float().cpu().mean(0)
@@ -53,23 +55,34 @@ def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "
     H, W = error.shape
     panels = [(r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
               (c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8), to_rgb8(error[None], top or 1.0)]
-    titles = [f"rendered {view}".strip(), "captured", "|error|"]
-    if spread is not None:
-        panels.append(to_rgb8(spread[None], top or 1.0))
-        titles.append("predicted sigma")
     ramp = np.linspace(top or 1.0, 0.0, H, dtype=np.float32)[:, None].repeat(BAR_PX, 1)
     bar = np.zeros((H, BAR_PX + BAR_LABEL_PX, 3), np.uint8)
     bar[:, :BAR_PX] = to_rgb8(ramp[None], top or 1.0)
+    scored = "" if psnr is None else f"{psnr:.2f} dB" + ("" if black is None else f" (black {black:.2f})")
+    titles = [[f"rendered {view}".strip() + (f": {scored}" if scored else "")], ["captured"],
+              ["|error|, image units" if _text_width("|error|, image units") <= W - 4 else "|error|"]]
+    if scored and _text_width(titles[0][0]) > W - 4:  # a narrow panel: the scores on a second line
+        titles[0] = [f"rendered {view}".strip(), scored]
+    if spread is not None:
+        panels.append(to_rgb8(spread[None], top or 1.0))
+        titles.append(["predicted sigma" if _text_width("predicted sigma") <= W - 4 else "sigma"])
     n = len(panels)
-    figure = np.zeros((TITLE_PX + H, n * W + bar.shape[1], 3), np.uint8)
-    figure[TITLE_PX:] = np.concatenate([*panels, bar], axis=1)
-    for k, title in enumerate(titles):
-        cv2.putText(figure, title, (k * W + 2, TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
-                    (255, 255, 255), 1, cv2.LINE_AA)
-    for y, text in ((TITLE_PX + 9, f"{top:.2g}"), (TITLE_PX + H - 2, "0")):
+    strip = TITLE_PX * max(len(t) for t in titles)
+    figure = np.zeros((strip + H, n * W + bar.shape[1], 3), np.uint8)
+    figure[strip:] = np.concatenate([*panels, bar], axis=1)
+    for k, lines in enumerate(titles):
+        for line, title in enumerate(lines):
+            cv2.putText(figure, title, (k * W + 2, (line + 1) * TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                        (255, 255, 255), 1, cv2.LINE_AA)
+    for y, text in ((strip + 9, f"{top:.2g}"), (strip + H - 2, "0")):
         cv2.putText(figure, text, (n * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
                     (255, 255, 255), 1, cv2.LINE_AA)
     return figure
+
+
+def _text_width(text: str) -> int:
+    """Pixels a figure title takes (cv2's small font at 0.35)."""
+    return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
 
 
 def detail_comparison(images: Sequence[torch.Tensor], bands: Sequence[torch.Tensor],
@@ -146,6 +159,32 @@ def top_view(density, bbox_min, bbox_max, up: str = "y", vmax: float | None = No
     return to_rgb8(project_along(density, bbox_min, bbox_max, up), vmax)
 
 
+def top_view_figure(path: str | os.PathLike, density, bbox_min, bbox_max, up: str = "y", title: str = "") -> Path:
+    """PNG of the paper's Fig. 5 read alone: the density seen from above (its line integral along
+    the ``up`` axis, channels summed: what a camera far above would record, in image units) on
+    world-unit axes, with its colour bar and a title."""
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as err:
+        raise ImportError(f"top_view.png needs matplotlib; {_INSTALL_HINT}") from err
+    seen = project_along(density, bbox_min, bbox_max, up).sum(axis=0)  # rows, cols in array order
+    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    rows_axis, cols_axis = ("xyz".index(n) for n in sorted((n for n in "xyz" if n != up), key=lambda n: _AXES[n]))
+    fig = Figure(figsize=(5.2, 4.4), dpi=100, layout="constrained")
+    ax = fig.subplots()
+    shown = ax.imshow(seen, origin="lower", extent=(lo[cols_axis], hi[cols_axis], lo[rows_axis], hi[rows_axis]),
+                      cmap="inferno", vmin=0.0, interpolation="nearest")
+    ax.set_xlabel(f"{'xyz'[cols_axis]} (world units)")
+    ax.set_ylabel(f"{'xyz'[rows_axis]} (world units)")
+    fig.colorbar(shown, ax=ax, label=f"emission integrated along {up} (image units)")
+    ax.set_title(f"{title + chr(10) if title else ''}density seen from above, along {up} (the paper's Fig. 5)",
+                 fontsize="medium")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
+
+
 def centroid_index(density) -> tuple[int, int, int]:
     """The voxel (i, j, k) nearest the density's centre of mass (channels summed; the grid's
     centre for an empty volume)."""
@@ -211,11 +250,11 @@ def slices_figure(
     for ax, (plane, h, v, label) in zip(axes, panels):
         shown = ax.imshow(plane, origin="lower", extent=(lo[h], hi[h], lo[v], hi[v]),
                           cmap="inferno", vmin=0.0, vmax=vmax, interpolation="nearest")
-        ax.set_xlabel("xyz"[h])
-        ax.set_ylabel("xyz"[v])
+        ax.set_xlabel(f"{'xyz'[h]} (world units)")
+        ax.set_ylabel(f"{'xyz'[v]} (world units)")
         ax.set_title(label)
     fig.colorbar(shown, ax=list(axes), shrink=0.9,
-                 label="density" if channel is None else f"density, channel {channel}")
+                 label=("density" if channel is None else f"density, channel {channel}") + " (image units per world unit)")
     where = "its centre of mass, voxel" if index is None else "voxel"
     fig.suptitle(f"{title + ': ' if title else ''}density through {where} {(i, j, k)}")
     path = Path(path)

@@ -49,7 +49,7 @@ def iso_surface(density, bbox_min, bbox_max, iso: float = DEFAULT_ISO) -> tuple[
     peak = float(field.max()) if field.size else 0.0
     if not np.isfinite(peak) or peak <= 0.0:
         raise ConfigError("export.iso: the density is zero (or not finite) everywhere, so it has no "
-                          "iso-surface; export a volume format instead (vti, nrrd, raw)")
+                          "iso-surface; export a volume format instead (vti, nrrd, raw, vdb)")
     padded = np.pad(field, 1)
     verts, faces, _, _ = marching_cubes()(padded, level=float(iso) * peak)
     n = np.array(field.shape[::-1], dtype=np.float64)  # (nx, ny, nz)

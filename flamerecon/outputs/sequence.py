@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ import yaml
 
 from flamerecon.outputs.atomic import atomic_path
 from flamerecon.outputs.export import DENSITY_FILE, Density, load_density, write_pvd, write_vti
+from flamerecon.plain import json_value
 
 SEQUENCE_FILE = "sequence.npz"
 PVD_FILE = "sequence.pvd"
@@ -37,6 +37,9 @@ METRICS_PNG = "sequence_metrics.png"
 # metric names plotted first, when present (leaf names of the flattened metrics.json)
 _PLOT_FIRST = ("psnr", "ssim", "detail", "rel_l2", "iou", "iterations", "seconds", "objective")
 _MAX_PANELS = 6
+#: axis labels with units of the metrics plotted
+_UNITS = {"psnr": "PSNR [dB]", "ssim": "SSIM", "detail": "detail correlation", "rel_l2": "relative L2 error",
+          "iou": "support IoU", "iterations": "iterations", "seconds": "seconds [s]", "objective": "objective"}
 
 
 class SweepError(ValueError):
@@ -178,34 +181,46 @@ def write_metrics_csv(path: str | os.PathLike, runs: list[FrameRun]) -> Path:
 
 def plot_metrics(path: str | os.PathLike, runs: list[FrameRun]) -> Path | None:
     """Numeric metrics against frame, one panel per metric name (``psnr``, ``ssim``, ... first),
-    one line per place it was measured (e.g. each held-out view). None without matplotlib or
-    without numeric metrics."""
+    one line per place it was measured (e.g. each held-out view), the PSNR panel with each
+    view's black-image floor dashed, axes with units, legends beside the panels, a title naming
+    the sweep. None without matplotlib or without numeric metrics."""
     try:
         from matplotlib.figure import Figure
     except ImportError:
         return None
     groups: dict[str, list[str]] = {}
-    for name in sorted({k for r in runs for k, v in r.metrics.items() if _is_number(v)}):
+    numeric = {k for r in runs for k, v in r.metrics.items() if _is_number(v)}
+    for name in sorted(numeric):
+        if name.rsplit(".", 1)[-1].startswith("psnr_black"):
+            continue  # drawn as the floor under its PSNR
         groups.setdefault(name.rsplit(".", 1)[-1], []).append(name)
     if not groups:
         return None
     order = sorted(groups, key=lambda g: (_PLOT_FIRST.index(g) if g in _PLOT_FIRST else 99, g))
     order = order[:_MAX_PANELS]
-    fig = Figure(figsize=(5.0 * min(len(order), 3), 3.2 * ((len(order) + 2) // 3)), dpi=100)
+    fig = Figure(figsize=(6.2 * min(len(order), 3), 3.4 * ((len(order) + 2) // 3) + 0.5), dpi=100,
+                 layout="constrained")
     frames = np.array([r.frame for r in runs])
+
+    def series(name: str) -> np.ndarray:
+        return np.array([float(r.metrics[name]) if _is_number(r.metrics.get(name)) else np.nan for r in runs])
+
     for panel, group in enumerate(order, start=1):
         ax = fig.add_subplot((len(order) + 2) // 3, min(len(order), 3), panel)
         for name in groups[group]:
-            values = np.array([float(r.metrics[name]) if _is_number(r.metrics.get(name))
-                               else np.nan for r in runs])
             label = name[: -len(group) - 1] if name != group else group
-            ax.plot(frames, values, marker="o", label=label)
+            line, = ax.plot(frames, series(name), marker="o", label=label)
+            if group == "psnr" and f"{name}_black" in numeric:
+                ax.plot(frames, series(f"{name}_black"), linestyle="--", color=line.get_color(),
+                        label=f"{label}: black image")
         ax.set_xlabel("frame")
-        ax.set_title(group if len(groups[group]) > 1 else groups[group][0])
-        if len(groups[group]) > 1:
-            ax.legend(fontsize="small")
+        ax.set_ylabel(_UNITS.get(group, group))
+        ax.set_title(group if len(groups[group]) > 1 else groups[group][0], fontsize="medium")
+        if len(ax.get_lines()) > 1:
+            ax.legend(fontsize="x-small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
         ax.grid(alpha=0.3)
-    fig.tight_layout()
+    fig.suptitle(f"scores per frame of {Path(path).parent.name or Path(path).parent} "
+                 "(held-out: predictions; train: the fit; dashed: an all-black image)")
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
@@ -248,8 +263,8 @@ def _read_metrics(run_dir: Path) -> dict[str, Any]:
     if not path.is_file():
         return {}
     try:
-        return flatten_metrics(json.loads(path.read_text()))
-    except json.JSONDecodeError as err:
+        return flatten_metrics(json_value(path.read_text()))
+    except ValueError as err:
         raise SweepError(f"{path}: not valid JSON ({err})") from err
 
 

@@ -3,12 +3,11 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import torch
 
-from flamerecon.errors import ResumeError, output_error
+from flamerecon.errors import ResumeError, output_error, torch_reason
 from flamerecon.outputs.atomic import atomic_path, write_errno
 
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -41,21 +40,11 @@ def load_checkpoint(run_dir: str | Path) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises many types for a damaged archive
-        raise ResumeError(f"{path}: unreadable checkpoint ({type(err).__name__}: {torch_reason(err)})") from err
+        raise ResumeError(f"{path}: unreadable checkpoint ({type(err).__name__}: {torch_reason(err, 'checkpoint')})") from err
     for key in ("state", "meta"):
         if key not in payload:
             raise ResumeError(f"{path}: field '{key}' is missing; not a flamerecon checkpoint")
     return payload
-
-
-def torch_reason(err: Exception) -> str:
-    """What ``torch.load`` found wrong, without its advice to load with ``weights_only=False``
-    (which would run whatever code the file holds)."""
-    text = str(err)
-    if "weights_only" in text:
-        found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
-        return f"it holds {'a ' + found.group(1) if found else 'Python objects'}, not only tensors; not a flamerecon checkpoint"
-    return " ".join(text.split())
 
 
 def _to_cpu(obj):

@@ -2,21 +2,31 @@
 
 Every script ends like ``train.py``: bad input is one line ``flamerecon: error: <file or
 field>: <what>; <what to try>`` on stderr and exit status 2 (``--debug`` shows the traceback),
-a diverged solve 3, Ctrl-C 130. A bad command line (argparse) gets the same prefix and status.
+a diverged solve 3, SIGINT (Ctrl-C), SIGTERM or SIGHUP 130 (each script installs the handlers
+on its first line, :func:`flamerecon.interrupt.install`). A bad command line (argparse) gets
+the same prefix and status.
 ``--help`` prints the script's module docstring whole, as written (:func:`script_parser`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
-import sys
+import re
+import signal
+import subprocess
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 from flamerecon.errors import FlameReconError, errno_text, output_error
+from flamerecon.interrupt import EXIT_STATUS, finish, say, signal_name
 from flamerecon.outputs.atomic import make_folder
+
+#: seconds a script waits for a child it passed a stop signal to (a checkpoint takes a moment)
+CHILD_GRACE_S = 60
 
 
 def one_line(err: BaseException) -> str:
@@ -25,8 +35,9 @@ def one_line(err: BaseException) -> str:
 
 
 def fail(message: str, status: int = 2) -> int:
-    """Print ``flamerecon: error: message`` on stderr; returns ``status``."""
-    print(f"flamerecon: error: {message}", file=sys.stderr)
+    """Print ``flamerecon: error: message`` on stderr (:func:`~flamerecon.interrupt.say`: a
+    terminal that is gone costs nothing); returns ``status``."""
+    say(f"flamerecon: error: {message}")
     return status
 
 
@@ -132,19 +143,78 @@ def compose_train(overrides: list[str], default_scene: str | None = "scalarflow"
         return compose(config_name="train", overrides=overrides)
 
 
+def run_child(command: list[str]) -> subprocess.CompletedProcess:
+    """``subprocess.run(command)`` with its output captured, for a script that starts
+    ``train.py`` processes: a stop signal that ends this process is passed on to the child
+    (which then checkpoints or writes its ``FAILED``), waited for, then raised here."""
+    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as child:
+        try:
+            out, err = child.communicate()
+        except KeyboardInterrupt as stop:
+            with contextlib.suppress(ProcessLookupError):
+                child.send_signal(getattr(signal, signal_name(stop)))
+            try:
+                child.communicate(timeout=CHILD_GRACE_S)
+            except subprocess.TimeoutExpired:
+                child.kill()
+                child.communicate()
+            raise
+    return subprocess.CompletedProcess(command, child.returncode, out, err)
+
+
+def timed_child(command: list[str], what: str) -> float:
+    """Wall seconds of one child process (:func:`run_child`, a ``train.py`` run); a
+    :class:`~flamerecon.errors.FlameReconError` with its last line when it fails (``what``
+    names it: ``train.py on frame 5``)."""
+    started = time.perf_counter()
+    done = run_child(command)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no message"])[-1]
+        raise FlameReconError(f"{what} failed (exit status {done.returncode}): {last}")
+    return time.perf_counter() - started
+
+
 def run_script(body: Callable[[], int | None], debug: bool = False) -> int:
     """Run a script's ``body`` and return its exit status: 0 (or what it returns), or the
     status of the error it raised, printed as one line (re-raised with ``debug``)."""
     try:
         return int(body() or 0)
-    except KeyboardInterrupt:
-        if debug:
-            raise
-        return fail("interrupted (Ctrl-C); what was written before is complete", 130)
+    except KeyboardInterrupt as stop:
+        return fail(f"interrupted by {signal_name(stop)}; every file written before is complete", EXIT_STATUS)
     except Exception as err:
         if debug:
             raise
         return fail(*describe(err))
+    finally:
+        finish()
+
+
+def config_problem(err: BaseException) -> str | None:
+    """One line for a config that Hydra or OmegaConf could not read, None for another error: a
+    file that is not plain YAML (a Python tag, broken syntax: named with its line), an
+    interpolation that does not resolve (``${oc.env:VAR}`` without VAR set, ``${a.key}`` that
+    is not there: named by the key that holds it)."""
+    import yaml
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(err, yaml.YAMLError):
+        mark = getattr(err, "problem_mark", None)
+        where = f"{mark.name}:{mark.line + 1}" if mark is not None else "a config file"
+        problem = " ".join(str(getattr(err, "problem", None) or err).split())
+        return (f"{where}: not plain YAML ({problem}); a config file holds plain values, no Python tags (nothing in "
+                "it was run)")
+    if not isinstance(err, OmegaConfBaseException):
+        return None
+    key = getattr(err, "full_key", None) or "config"
+    text = one_line(err)
+    env = re.search(r"Environment variable '([^']+)' not found", text)
+    if env:
+        return (f"{key}: ${{oc.env:{env[1]}}}: the environment variable {env[1]} is not set; set it (export "
+                f"{env[1]}=...), give the interpolation a default (${{oc.env:{env[1]},DEFAULT}}) or give {key}=...")
+    missing = re.search(r"Interpolation key '([^']+)' not found", text)
+    if missing:
+        return f"{key}: refers to ${{{missing[1]}}}, which is not in the config; give {key}=... a value"
+    return f"{key}: {text.split('    full_key')[0].strip()}; give {key}=... a plain value"
 
 
 def describe(err: Exception) -> tuple[str, int]:
@@ -153,6 +223,9 @@ def describe(err: Exception) -> tuple[str, int]:
 
     if isinstance(err, FlameReconError):
         return one_line(err), err.exit_code
+    problem = config_problem(err)
+    if problem is not None:
+        return problem, 2
     if isinstance(err, HydraException):
         return f"config: {one_line(err)}", 2
     if isinstance(err, OSError) and err.errno:

@@ -32,8 +32,10 @@ def refusal(err: HydraException, overrides: list[str]) -> str:
     key = getattr(err.__cause__, "full_key", None)
     if isinstance(err, ConfigCompositionException) and key:
         known = config_keys(_composed(overrides))
-        close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
-        hint = f"did you mean {close[0]}?" if close else "python train.py --cfg job lists the options"
+        leaf = str(key).rsplit(".", 1)[-1]
+        placed = [k for k in known if k.rsplit(".", 1)[-1] == leaf and k != str(key)]  # the option, elsewhere
+        close = placed[:2] or difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+        hint = f"did you mean {' or '.join(close)}?" if close else "python train.py --cfg job lists the options"
         return f"{key}: no such option; {hint}"
     return f"config: {one_line(err)}; python train.py --help lists the config groups, --cfg job the keys"
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
@@ -17,7 +18,7 @@ import torch
 
 from flamerecon.arguments import fields, instance, tensor, value
 from flamerecon.device import resolve_device
-from flamerecon.errors import ConfigError, RunFolderError
+from flamerecon.errors import ConfigError, RunFolderError, output_error
 from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import native_scores, score, write_renders
 from flamerecon.evaluate.uncertainty import (
@@ -32,11 +33,13 @@ from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Reconstruction, mean_of
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.geometry.grid import VoxelGrid
-from flamerecon.outputs.atomic import update_json_atomic, write_json_atomic
+from flamerecon.outputs.atomic import is_temporary, update_json_atomic, write_json_atomic
 from flamerecon.outputs.cameras_file import camera_records, cameras_from_records
-from flamerecon.outputs.export import UNCERTAINTY_FILE, load_density, save_density
+from flamerecon.outputs.export import FORMATS, UNCERTAINTY_FILE, load_density, save_density
 from flamerecon.outputs.figures import heldout_figure, top_view
+from flamerecon.plain import json_value
 from flamerecon.rules import integer, list_of
+from flamerecon.run.cli import one_line
 from flamerecon.run.guard import StopSolve
 from flamerecon.run.hook import log_pictures
 from flamerecon.run.summary import flat_metrics
@@ -44,7 +47,40 @@ from flamerecon.run.tensorboard import RunWriter
 from flamerecon.scenes import Scene, load_scene
 
 CONFIG_FILE = Path(".hydra") / "config.yaml"
-RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "log", "checkpoint", "export", "hydra")
+#: the marker of a failed run (run/runner.py writes it)
+FAILED_FILE = "FAILED"
+RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "overwrite", "log", "checkpoint", "export", "hydra")
+#: what a run writes into its folder (besides TensorBoard's ``events.out.tfevents.*`` and the
+#: atomic writers' stale temporaries): what ``overwrite=true`` removes before a new run there
+RUN_ENTRIES = frozenset({
+    ".hydra", "train.log", "density.npz", "cameras.json", "metrics.json", "renders", "checkpoint.pt", "FAILED",
+    "frames", "multirun.yaml", "density.raw.json", *(f"density.{fmt}" for fmt in FORMATS)})
+#: the folders and the log a run writes into (through a symbolic link it would write elsewhere)
+RUN_SUBFOLDERS = (".hydra", "renders", "frames", "train.log")
+EVENTS_PREFIX = "events.out.tfevents."
+
+
+def run_entries(folder: Path) -> list[Path]:
+    """The entries of ``folder`` a run wrote (:data:`RUN_ENTRIES`, TensorBoard's events, stale
+    temporaries of the atomic writers), sorted."""
+    return sorted(p for p in folder.iterdir() if p.name in RUN_ENTRIES or p.name.startswith(EVENTS_PREFIX)
+                  or is_temporary(p))
+
+
+def clear_run(folder: Path) -> list[str]:
+    """Remove the entries of the run in ``folder`` (:func:`run_entries`; a symbolic link is
+    removed, never followed), keeping every other file; returns their names."""
+    removed = []
+    for entry in run_entries(folder):
+        try:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+        except OSError as err:
+            raise output_error(entry, err) from err
+        removed.append(entry.name)
+    return removed
 
 
 def cameras_record(scene: Scene, train: list[int],
@@ -77,7 +113,8 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
             metrics["resolution"]["native"] = list(size)
     if calibration:
         metrics["calibration"] = {**calibration, "train_psnr_after": mean_of(metrics["train"], "psnr")}
-    metrics["warnings"] = result_warnings(scene, volume, metrics, train + holdout, *penalty)
+    metrics["warnings"] = result_warnings(scene, volume, metrics, train + holdout, *penalty, train=train, step=step,
+                                          bbox=(grid.bbox_min, grid.bbox_max))
     return metrics, held_imgs
 
 
@@ -103,8 +140,10 @@ def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_
     recorded = recorded_sigma(scene, held_imgs, sigma)
     for k, v in enumerate(setup.holdout):
         metrics["heldout"][scene.views[v]]["psnr_predicted"] = predicted_psnr(recorded[k])
-        writer.image(f"uncertainty/{scene.views[v]}", heldout_figure(held_imgs[k], scene.images[v], scene.views[v],
-                                                                     sigma[k]), rec.fit.result.iterations, "HWC")
+        scores = metrics["heldout"][scene.views[v]]
+        figure = heldout_figure(held_imgs[k], scene.images[v], scene.views[v], scores["psnr"], scores["psnr_black"],
+                                sigma[k])
+        writer.image(f"uncertainty/{scene.views[v]}", figure, rec.fit.result.iterations, "HWC")
     metrics["uncertainty"] = {"members": conf.labels, "scale": conf.scale, "shift_voxels": conf.shift_voxels,
                               "seconds": conf.seconds + time.perf_counter() - clock}
     return sigma
@@ -196,12 +235,41 @@ def run_options(run_dir: str | Path) -> tuple[ReconstructionOptions, dict]:
     return ReconstructionOptions.from_dict(plain, ignore=RUN_LAYER_KEYS), plain["scene"]
 
 
-def read_photometry(run_dir: Path) -> dict[str, tuple[float, float]] | None:
-    """{view: (gain, offset)} from a run's cameras.json, None when it has none."""
-    path = run_dir / "cameras.json"
+def run_json(path: Path) -> dict:
+    """The JSON object of a run's file (cameras.json, metrics.json); {} where it is absent, a
+    :class:`~flamerecon.errors.RunFolderError` naming it where it cannot be read."""
     if not path.is_file():
+        return {}
+    try:
+        data = json_value(path.read_text())
+    except (OSError, ValueError) as err:
+        raise RunFolderError(f"{path}: not a readable JSON file ({one_line(err)}); evaluate a run folder that "
+                             "flamerecon wrote whole") from None
+    if not isinstance(data, dict):
+        raise RunFolderError(f"{path}: top level must be an object, as flamerecon writes it")
+    return data
+
+
+def run_cameras(run_dir: Path, scene: Scene) -> list[dict]:
+    """cameras.json's camera records of a run, one for each view of ``scene`` ([] without
+    the file); a :class:`~flamerecon.errors.RunFolderError` naming a view it lacks."""
+    path = run_dir / "cameras.json"
+    cams = run_json(path).get("cameras", [])
+    if not isinstance(cams, list) or not all(isinstance(c, dict) and isinstance(c.get("name"), str) for c in cams):
+        raise RunFolderError(f"{path}: field 'cameras' must be a list of camera records with a 'name'")
+    names = {c["name"] for c in cams}
+    missing = [v for v in scene.views if v not in names] if cams else []
+    if missing:
+        raise RunFolderError(f"{path}: no camera '{missing[0]}' (scene '{scene.name}' has {scene.views}): the file "
+                             "does not come from this run; evaluate the folder it was written in")
+    return cams
+
+
+def read_photometry(run_dir: Path, scene: Scene) -> dict[str, tuple[float, float]] | None:
+    """{view: (gain, offset)} from a run's cameras.json, None when it has none."""
+    cams = run_cameras(run_dir, scene)
+    if not cams:
         return None
-    cams = json.loads(path.read_text()).get("cameras", [])
     return {c["name"]: (float(c.get("gain", 1.0)), float(c.get("offset", 0.0))) for c in cams}
 
 
@@ -210,15 +278,14 @@ def recorded_calibration(run_dir: Path, scene: Scene) -> tuple[Scene, dict | Non
     K and world_to_camera where it also holds ``K_calibrated``), and metrics.json's
     ``calibration`` record; ``(scene, None)`` for a run without refinement."""
     path = run_dir / "cameras.json"
-    cams = json.loads(path.read_text()).get("cameras", []) if path.is_file() else []
+    cams = run_cameras(run_dir, scene)
     if not cams or "K_calibrated" not in cams[0]:
         return scene, None
     try:
         cameras = cameras_from_records(cams, scene.views, scene.cameras.height, scene.cameras.width, str(path))
     except ConfigError as err:
         raise RunFolderError(str(err)) from None
-    old = run_dir / "metrics.json"
-    record = json.loads(old.read_text()).get("calibration") if old.is_file() else None
+    record = run_json(run_dir / "metrics.json").get("calibration")
     return replace(scene, cameras=cameras, meta={**scene.meta, "calibrated_cameras": scene.cameras}), record
 
 
@@ -259,13 +326,21 @@ class Run:
                       penalty=penalty_of(self.options.solver.as_dict(), self.solver.get("l1", 0.0)))
 
 
-def load_run(run_dir: str | Path, device: str = "auto") -> Run:
+def load_run(run_dir: str | Path, device: str = "auto", failed: bool = False) -> Run:
     """A finished CLI run folder (``.hydra/config.yaml``, density.npz, cameras.json,
-    metrics.json) back as a :class:`Run`: its options, scene, density and scores."""
+    metrics.json) back as a :class:`Run`: its options, scene, density and scores. A run that
+    failed (its ``FAILED`` file) is a :class:`~flamerecon.errors.RunFolderError` unless
+    ``failed`` (a diverged run's density.npz holds its last good iterate)."""
     instance("load_run.run_dir", run_dir, (str, os.PathLike), "the path of a run folder")
     instance("load_run.device", device, (str, torch.device), "a device name (auto, cpu, cuda, cuda:N)")
+    instance("load_run.failed", failed, bool, "True or False")
     device = resolve_device(device, "load_run.device")
     run_dir = Path(run_dir)
+    if (run_dir / FAILED_FILE).is_file() and not failed:
+        lines = (run_dir / FAILED_FILE).read_text(errors="replace").splitlines()
+        again = "resume it or run it again" if (run_dir / "checkpoint.pt").is_file() else "run it again"
+        raise RunFolderError(f"{run_dir}: the run failed ({lines[0] if lines else 'FAILED'}), it did not finish: "
+                             f"{again} (load_run(..., failed=True) loads what it wrote)")
     options, scene_options = run_options(run_dir)
     saved = load_density(run_dir / "density.npz")
     scene, calibration = recorded_calibration(run_dir, load_scene(scene_options))
@@ -277,9 +352,8 @@ def load_run(run_dir: str | Path, device: str = "auto") -> Run:
     volume = torch.from_numpy(saved.density).to(device)
     with np.load(run_dir / "density.npz") as f:
         solver = json.loads(str(f["solver"])) if "solver" in f.files else {}
-    metrics_path = run_dir / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-    return Run(run_dir, options, scene_options, scene, grid, volume, train, holdout, read_photometry(run_dir),
+    metrics = run_json(run_dir / "metrics.json")
+    return Run(run_dir, options, scene_options, scene, grid, volume, train, holdout, read_photometry(run_dir, scene),
                calibration, solver, metrics)
 
 
@@ -288,7 +362,7 @@ def evaluate(run_dir: str | Path, device: str = "auto", native: bool = True) -> 
     rewrite the scores in ``metrics.json`` (its other fields, such as the run's ``timing``,
     kept) and ``renders/``; returns the metrics. With ``native`` the held-out
     views are also scored at the capture's native resolution (``scene.downscale=1``)."""
-    run = load_run(run_dir, device)
+    run = load_run(run_dir, device, failed=True)  # re-scoring what a failed run wrote is asked for by name
     metrics, held_imgs = run.scores(native)
     metrics["solver"] = run.solver
     write_renders(run.folder, held_imgs, run.scene, run.holdout)

@@ -1,18 +1,18 @@
 """The solve's watchdog: a solver callback that stops on NaN/Inf or divergence (keeping the last
-good iterate), checkpoints every N iterations, and stops cleanly on SIGINT/SIGTERM."""
+good iterate), checkpoints every N iterations, and stops cleanly on a stop signal (SIGINT,
+SIGTERM, SIGHUP; see :mod:`flamerecon.interrupt`)."""
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
+from flamerecon import interrupt
 from flamerecon.run.checkpoint import save_checkpoint
 from flamerecon.solvers import Solver
 
@@ -27,36 +27,6 @@ class StopSolve(Exception):
         self.reason, self.iteration, self.detail = reason, iteration, detail
 
 
-class StopSignals:
-    """While active, the first SIGINT/SIGTERM only sets :attr:`received` (the solve stops at its
-    next check, after a checkpoint); a second one interrupts at once (KeyboardInterrupt)."""
-
-    def __init__(self) -> None:
-        self.received: str | None = None
-
-    def _handle(self, signum, _frame) -> None:
-        if self.received is not None:
-            raise KeyboardInterrupt
-        self.received = signal.Signals(signum).name  # logged by the guard, not in the handler
-
-
-@contextlib.contextmanager
-def stop_signals() -> Iterator[StopSignals]:
-    """Install :class:`StopSignals` for SIGINT and SIGTERM (main thread only), restore after."""
-    stop = StopSignals()
-    previous = {}
-    try:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, stop._handle)
-    except ValueError:  # not the main thread: leave the handlers alone
-        pass
-    try:
-        yield stop
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 class SolveGuard:
     """Callback ``(iteration, x (M, C), info)`` wrapping ``inner`` (the monitor).
 
@@ -64,8 +34,9 @@ class SolveGuard:
       the objective exceeds ``divergence_factor`` times ``start_objective``; :attr:`last_good`
       then holds the last iterate that passed, as (iteration, x);
     - writes ``run_dir/checkpoint.pt`` at the first check at least ``every`` iterations after
-      the last one (0: never on schedule) and when a stop signal was received, then stops
-      with :class:`StopSolve` ('interrupted').
+      the last one (0: never on schedule) and, when a stop signal was recorded
+      (:func:`flamerecon.interrupt.received`, the solve runs :func:`~flamerecon.interrupt.deferred`),
+      then stops with :class:`StopSolve` ('interrupted').
     """
 
     def __init__(self, solver: Solver, inner: Callable | None, run_dir: str | Path, every: int,
@@ -76,9 +47,9 @@ class SolveGuard:
         self.start_objective, self.meta = float(start_objective), meta
         self.last_good = (start[0], start[1].detach().clone())
         self.last_saved = start[0]
+        self.saved_here = start[0] > 0  # only a resumed solve starts past 0: from this solve's checkpoint
         self.seconds_before = seconds_before
         self.started = time.perf_counter()
-        self.signals: StopSignals | None = None
 
     def seconds(self) -> float:
         """Solve time so far, including the runs before a resume."""
@@ -96,13 +67,19 @@ class SolveGuard:
         self.last_good = (it, x.detach().clone())
         if self.inner is not None:
             self.inner(it, x, info)
-        if self.signals is not None and self.signals.received:
-            log.warning("%s received: checkpointing and stopping at iteration %d",
-                        self.signals.received, it)
-            self.checkpoint(it, x)
-            raise StopSolve("interrupted", it, f"{self.signals.received} received")
+        if interrupt.received():
+            self.stop_here(it, x, interrupt.received())
         if self.every > 0 and it - self.last_saved >= self.every:
             self.checkpoint(it, x)
+
+    def stop_here(self, it: int, x: torch.Tensor, name: str) -> None:
+        """Checkpoint iteration ``it`` (iterate ``x``) and stop with :class:`StopSolve`
+        ('interrupted') for the stop signal ``name``, which is then acted on."""
+        log.warning("%s received: checkpointing and stopping at iteration %d", name, it)
+        interrupt.forget()
+        if not (it == self.last_saved and self.saved_here):  # else checkpoint.pt holds this very state
+            self.checkpoint(it, x)
+        raise StopSolve("interrupted", it, f"{name} received")
 
     def checkpoint(self, it: int, x: torch.Tensor) -> Path:
         """Save the solver's state (or ``x`` alone for solvers without :meth:`Solver.state`)."""
@@ -114,6 +91,6 @@ class SolveGuard:
             "meta": {**self.meta, "seconds": self.seconds(), "start_objective": self.start_objective},
         }
         path = save_checkpoint(self.run_dir, payload)
-        self.last_saved = it
+        self.last_saved, self.saved_here = it, True
         log.info("checkpoint at iteration %d: %s", it, path)
         return path

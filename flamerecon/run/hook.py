@@ -14,13 +14,14 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from flamerecon import interrupt
 from flamerecon.errors import Interrupted, ResumeError, SolveDiverged
 from flamerecon.evaluate.scores import render_scene_views, view_psnr
 from flamerecon.fit.build import Setup
 from flamerecon.fit.reconstruct import ResumePoint, SolveHook, Stage
 from flamerecon.outputs.figures import heldout_figure, top_view
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
-from flamerecon.run.guard import SolveGuard, StopSolve, stop_signals
+from flamerecon.run.guard import SolveGuard, StopSolve
 from flamerecon.run.summary import cells_of
 from flamerecon.run.tensorboard import RunWriter
 from flamerecon.solvers import Problem, Solver, SolveResult
@@ -38,7 +39,7 @@ class Monitor:
     The held-out views are rendered at most every ``eval_every`` iterations (0: never) and
     only while the monitor's own wall time, this render included (predicted from the last
     one), stays within ``eval_share`` of the solve's (None: no limit), so that past the first
-    render they cost at most that share; on the final grid (``tag_root`` ``""``) never at the
+    render (always made) they cost at most that share; on the final grid (``tag_root`` ``""``) never at the
     last iteration (``total``), whose pictures the run's final evaluation logs. :attr:`seconds`
     is the wall time spent here.
     """
@@ -66,7 +67,7 @@ class Monitor:
         values = {k: info[k] for k in ("objective", "data", "l1", "smooth", "tv", "rel_gap") if k in info}
         values["nonzero_fraction"] = float((x > 0).any(1).float().mean())
         self.writer.scalars(it, values, prefix=f"{self.tag_root}solve")
-        affordable = self.share is None or (
+        affordable = self.share is None or self.last_pictures == 0 or (
             self.seconds + self.render_seconds <= self.share * (now - self.started))
         if self.every > 0 and it - self.last_pictures >= self.every and it != self.left_to_evaluation and affordable:
             start = time.perf_counter()
@@ -105,7 +106,7 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
 class RunOptions:
     """The run layer's ``log:`` and ``checkpoint:`` nodes."""
 
-    eval_every: int = 100
+    eval_every: int = 20
     eval_share: float | None = 0.1
     checkpoint_every: int = 100
     divergence_factor: float = 1.0e3
@@ -187,10 +188,16 @@ class RunHook(SolveHook):
                            start_objective, {**meta, **carry}, (start, start_x), seconds_before)
         stopped: StopSolve | None = None
         try:
-            with stop_signals() as signals:
-                guard.signals = signals
+            with interrupt.deferred():
                 try:
-                    result = solver.solve(problem, x0=x0, callback=guard)
+                    try:
+                        result = solver.solve(problem, x0=x0, callback=guard)
+                    except interrupt.Stopped as stop:  # raised between chunks, away from a check
+                        if stop.forced:  # a second signal: at once, no checkpoint
+                            raise
+                        guard.stop_here(*guard.last_good, stop.signal)
+                    if interrupt.received():  # after the last check
+                        guard.stop_here(result.iterations, result.x, interrupt.received())
                     result.seconds = guard.seconds()
                 except StopSolve as stop:
                     if stop.reason == "interrupted":

@@ -26,7 +26,7 @@ from flamerecon.fit.joint_frames import (
     reconstruct_frames,
 )
 from flamerecon.fit.reconstruct import SolveHook
-from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.outputs.atomic import make_subfolder, write_json_atomic
 from flamerecon.outputs.export import save_density
 from flamerecon.run.config import options_from_config, start_run
 from flamerecon.run.folder import cameras_record, scores, write_scores
@@ -98,7 +98,8 @@ def run_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> di
         combined: dict = {"heldout": {}, "train": {}, "frames": {}, "warnings": []}
         for t, fcfg, frame in zip(numbers, configs, rec.frames):
             key = f"{t:06d}"
-            combined["frames"][key] = write_frame(fcfg, run_dir / FRAMES_FOLDER / key, frame, rec.result, rec.record)
+            folder = make_subfolder(make_subfolder(run_dir, FRAMES_FOLDER), key)
+            combined["frames"][key] = write_frame(fcfg, folder, frame, rec.result, rec.record)
             for part in ("heldout", "train"):
                 for view, values in combined["frames"][key][part].items():
                     combined[part][f"{key}/{view}"] = values
@@ -121,8 +122,7 @@ def run_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> di
 
 
 def write_frame(cfg: DictConfig, folder: Path, frame: JointFrame, result: JointResult, temporal: dict) -> dict:
-    """One frame's density.npz, cameras.json, metrics.json and renders/ in ``folder``."""
-    folder.mkdir(parents=True, exist_ok=True)
+    """One frame's density.npz, cameras.json, metrics.json and renders/ in ``folder`` (made)."""
     options = options_from_config(cfg)
     setup, volume = frame.setup, frame.density
     info = {"name": cfg.solver.name, "l1": frame.l1, "iterations": result.iterations,

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from flamerecon import interrupt
 from flamerecon.device import resolve_device
 from flamerecon.evaluate.scores import render_scene_views, score_rendered, write_renders
 from flamerecon.fit.build import build
@@ -54,6 +55,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     rows = {}
     folds = Progress("leave-one-out", len(views), unit="fold")
     for name in views:
+        interrupt.check()
         split = options.replace(holdout=(name, *[e for e in exclude if e != name]))
         fold, _ = calibrated_scene(scene, split, device)  # calibration.refine: this fold's cameras
         setup = build(fold, split, device)

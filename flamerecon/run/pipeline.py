@@ -20,12 +20,12 @@ from omegaconf import DictConfig, OmegaConf
 from flamerecon.device import resolve_device
 from flamerecon.errors import ConfigError, SolveDiverged
 from flamerecon.fit import reconstruct as core
-from flamerecon.fit.build import Setup, build, scene_grid
+from flamerecon.fit.build import Setup, build
 from flamerecon.fit.ensemble import confidence
-from flamerecon.fit.levels import level_grids
 from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import Photometry, mean_of
 from flamerecon.fit.refine_cameras import RefineOptions
+from flamerecon.machine import peak_memory
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.export import check_exporters, export_run
 from flamerecon.outputs.mesh import DEFAULT_ISO
@@ -108,7 +108,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     clock = time.perf_counter()
     scene = load_scene(cfg.scene)
     timing = {"scene": time.perf_counter() - clock}
-    plan = [list(g.resolution) for g in level_grids(list(options.grid.levels) or None, scene_grid(options.grid, scene))]
+    plan = [level.plan_entry() for level in core.levels_of(scene, options)]
     writer = RunWriter(str(run_dir))
     try:
         hook = RunHook(run_dir, writer, run_options(cfg), plan, ckpt, watch)
@@ -139,6 +139,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         export_run(run_dir, list(formats), float(cfg.export.get("iso", DEFAULT_ISO)))
         timing["export"] = time.perf_counter() - clock
     metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
+    metrics["memory"] = peak_memory(device)
     write_json_atomic(run_dir / "metrics.json", metrics)
     return logged(metrics)
 

@@ -15,7 +15,7 @@ log = logging.getLogger(__name__)
 #: overrides that change how long the solve may go on, not what it solves.
 BUDGET_KEYS = ("solver.max_iters", "solver.max_seconds", "checkpoint.every")
 #: overrides about this command, not the run: taken from the command line as they are.
-COMMAND_KEYS = ("resume", "debug", "threads")
+COMMAND_KEYS = ("resume", "debug", "threads", "overwrite")
 
 
 def override_key(override: str) -> str:

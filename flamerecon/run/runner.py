@@ -4,6 +4,9 @@
 - A :class:`~flamerecon.errors.FlameReconError` prints ``flamerecon: error: <message>`` on
   stderr, no traceback (``debug=true`` shows it), and exits with the error's status
   (2 bad input, 3 diverged, 130 interrupted).
+- A stop signal (SIGINT, SIGTERM, SIGHUP): in the solve, the state is checkpointed and
+  ``resume=RUN_DIR`` goes on; anywhere else the run's folder gets a ``FAILED`` saying so (a
+  folder holding nothing but Hydra's entries is removed instead); one line, exit status 130.
 - Every failed run folder gets a ``FAILED`` file with the message (and the traceback of an
   unexpected exception). Under ``--multirun`` a failed job records it and returns, so the other
   jobs still run; :class:`FailureSummary` lists the failures at the end and exits with status 2.
@@ -15,6 +18,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import sys
@@ -26,6 +30,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from flamerecon.errors import (
+    ConfigError,
     FlameReconError,
     Interrupted,
     ResumeError,
@@ -33,11 +38,13 @@ from flamerecon.errors import (
     RunFolderInUse,
     errno_text,
 )
+from flamerecon.interrupt import EXIT_STATUS, say, signal_name
 from flamerecon.outputs.atomic import atomic_write_text
+from flamerecon.outputs.sweep import FAILED_FILE, sweep_table, write_sweep_csv
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
-from flamerecon.run.cli import one_line
+from flamerecon.run.cli import config_problem, one_line
+from flamerecon.run.folder import FAILED_FILE
 
-FAILED_FILE = "FAILED"
 #: what Hydra (and the lock) put into a run or sweep folder before the run does any work
 HYDRA_ENTRIES = frozenset({".hydra", "train.log", "multirun.yaml", ".lock"})
 #: run and sweep folders this process made (:class:`LockRunFolder`) -> the topmost folder made
@@ -66,9 +73,11 @@ def discard_unused(folder: str | Path | None = None) -> bool:
     return removed
 
 
-def record_failure(run_dir: str | Path, message: str) -> Path | None:
-    """Write ``run_dir/FAILED`` with ``message`` (atomically); None where the folder is gone or
-    cannot be written (the one-line error on stderr says why)."""
+def record_failure(run_dir: str | Path | None, message: str) -> Path | None:
+    """Write ``run_dir/FAILED`` with ``message`` (atomically); None where there is no folder,
+    it is gone or cannot be written (the one-line error on stderr says why)."""
+    if run_dir is None:
+        return None
     folder = Path(run_dir)
     if not folder.is_dir():
         return None
@@ -93,6 +102,24 @@ def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
         scene.root = str((Path(start) / path).resolve())
 
 
+def config_block(cfg: DictConfig, run_dir: str | Path, overrides: list[str] | None) -> str:
+    """The composed config's nodes that set a run apart, as YAML (scene, holdout, device, grid,
+    solver, and debias, select and calibration when they are on), with the command line's
+    overrides and where the whole config is kept; printed when a run starts."""
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    shown = {k: plain[k] for k in ("scene", "holdout", "device", "grid", "solver") if k in plain}
+    if (plain.get("debias") or {}).get("method", "none") != "none":
+        shown["debias"] = plain["debias"]
+    if (plain.get("select") or {}).get("auto"):
+        shown["select"] = {k: v for k, v in plain["select"].items() if k != "candidates"}
+    if (plain.get("calibration") or {}).get("refine", "none") != "none":
+        shown["calibration"] = plain["calibration"]
+    text = OmegaConf.to_yaml(OmegaConf.create(shown)).rstrip()
+    return (f"config (overrides: {' '.join(overrides or []) or 'none'}; all of it: "
+            f"{Path(run_dir) / '.hydra' / 'config.yaml'}, or python train.py --cfg job):\n"
+            + "\n".join(f"  {line}" for line in text.splitlines()))
+
+
 def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
              cwd: str | Path | None = None, overrides: list[str] | None = None) -> float | None:
     """Reconstruct (or resume, with ``resume=RUN_DIR``: the run's own config, with the budget
@@ -107,10 +134,12 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
     from flamerecon.run.pipeline import flat_metrics, reconstruct, run_config, summary_table
     from flamerecon.run.resume import resume_config
 
-    debug = bool(cfg.get("debug", False))
     start = Path.cwd() if cwd is None else Path(cwd)
     failed_in = Path(run_dir)
+    debug = False
     try:
+        resolves(cfg)
+        debug = cfg.get("debug", False) is True  # debug=yes is refused by its rule, without a traceback
         if cfg.get("resume"):
             resumed = Path(str(cfg.resume))
             if not resumed.is_absolute():
@@ -122,12 +151,13 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
             run_dir = resumed
         else:
             anchor_scene_root(cfg, start)
+            print(config_block(cfg, run_dir, overrides), flush=True)
             metrics = reconstruct(cfg, run_dir)
     except FlameReconError as err:
         if debug:
             raise
-        print(f"flamerecon: error: {err}", file=sys.stderr)
-        if isinstance(err, Interrupted):
+        say(f"flamerecon: error: {err}")
+        if isinstance(err, Interrupted):  # checkpointed: checkpoint.pt is the record
             raise SystemExit(err.exit_code) from None
         unused = err.exit_code == 2 and not cfg.get("resume") and discard_unused(failed_in)
         if not isinstance(err, RunFolderInUse) and not unused:
@@ -135,18 +165,16 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
         if multirun:
             return None
         raise SystemExit(err.exit_code) from None
-    except KeyboardInterrupt:
-        if debug:
-            raise
-        print("flamerecon: interrupted outside the solve; nothing was checkpointed",
-              file=sys.stderr)
-        raise SystemExit(130) from None
+    except KeyboardInterrupt as stop:  # a stop signal outside the solve (in it: Interrupted)
+        say(f"flamerecon: error: {interrupted(stop, cfg, failed_in)}")
+        raise SystemExit(EXIT_STATUS) from None
     except Exception as err:
         if debug:
             raise
         detail = traceback.format_exc()
         folder = failure_folder(err, cfg, failed_in)
         marker = record_failure(folder, f"unexpected {type(err).__name__}: {err}\n\n{detail}")
+        folder = folder or failed_in
         if isinstance(err, OSError) and err.errno:  # a system error outside flamerecon's writers
             where = err.filename if err.filename is not None else folder
             message = f"{where}: {errno_text(err)}; check the path, its permissions and free space"
@@ -164,14 +192,51 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
     return flat_metrics(metrics)["heldout_psnr"]
 
 
-def failure_folder(err: Exception, cfg: DictConfig, own: Path) -> Path:
+def interrupted(stop: KeyboardInterrupt, cfg: DictConfig, own: Path) -> str:
+    """The one line for a stop signal outside the solve (or a second one in it, which stops at
+    once), after recording it: a folder that holds
+    nothing but Hydra's entries is removed (:func:`discard_unused`), any other gets a ``FAILED``
+    (a checkpoint it holds is kept: ``resume=`` goes on from it)."""
+    folder = failure_folder(stop, cfg, own)
+    signal = signal_name(stop)
+    if not cfg.get("resume") and discard_unused(own):
+        return f"{folder}: interrupted by {signal} before the run wrote anything; its folder was removed"
+    if folder is None:
+        return f"resume={cfg.resume}: interrupted by {signal} before the run resumed; nothing was changed"
+    if (folder / CHECKPOINT_FILE).is_file():
+        what = f"its last checkpoint is kept: python train.py resume={folder} goes on from it"
+    else:
+        what = "nothing was checkpointed: run the command again"
+    how = f"stopped at once by a second {signal}" if getattr(stop, "forced", False) else \
+        f"interrupted by {signal} outside the solve"
+    message = f"{folder}: {how}; {what}"
+    record_failure(folder, message)
+    return message
+
+
+def resolves(cfg: DictConfig) -> None:
+    """A :class:`~flamerecon.errors.ConfigError` for an interpolation of ``cfg`` that does not
+    resolve (:func:`~flamerecon.run.cli.config_problem`), before any work."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as err:
+        raise ConfigError(config_problem(err)) from None
+
+
+def failure_folder(err: BaseException, cfg: DictConfig, own: Path) -> Path | None:
     """Where a failure is recorded: ``own`` (this command's folder), or with ``resume=`` the
     resumed folder when it still holds its checkpoint (an unfinished run) and the resume was
-    not refused: a finished run's folder never gets a ``FAILED``."""
-    if not cfg.get("resume") or isinstance(err, (ResumeError, RunFolderError)):
+    not refused: a finished run's folder never gets a ``FAILED``. None where there is no such
+    folder (a refused resume under the command line runs in the resumed folder, not its own)."""
+    if not cfg.get("resume"):
         return own
-    resumed = Path(str(cfg.resume))
-    return resumed if (resumed / CHECKPOINT_FILE).is_file() else own
+    resumed = Path(str(cfg.resume)).absolute()
+    refused = isinstance(err, (ResumeError, RunFolderError))
+    if not refused and (resumed / CHECKPOINT_FILE).is_file():
+        return resumed
+    return None if own.absolute() == resumed else own
 
 
 def failures(sweep_dir: str | Path) -> list[tuple[Path, str]]:
@@ -188,12 +253,19 @@ class LockRunFolder(Callback):
     Hydra writes ``.hydra/`` into it, so that a second run into a folder in use is refused
     before it changes anything there (exit status 2). The folder's name is resolved once and
     kept (``${now:...}`` would otherwise be read again), and the folders it makes are recorded
-    for :func:`discard_unused`."""
+    for :func:`discard_unused`.
+
+    A folder that holds a previous run (or anything else) is refused too, unless
+    ``overwrite=true`` (the previous run's files are removed first, other files stay): a
+    finished run is never replaced without a word. With ``resume=RUN_DIR`` the command runs
+    in RUN_DIR itself (no folder of its own, no ``.hydra/`` written over the run's), its lock
+    taken there. A ``renders/``, ``frames/``, ``.hydra/`` or ``train.log`` that is a symbolic
+    link is refused: writes stay inside the run folder."""
 
     def __init__(self) -> None:
         self.held = None
 
-    def _take(self, config: DictConfig, key: str) -> None:
+    def _take(self, config: DictConfig, key: str) -> Path:
         from omegaconf import OmegaConf, open_dict, read_write
 
         from flamerecon.run.lock import acquire
@@ -206,10 +278,10 @@ class LockRunFolder(Callback):
         try:
             self.held = acquire(folder)
         except FlameReconError as err:
-            print(f"flamerecon: error: {err}", file=sys.stderr)
-            raise SystemExit(err.exit_code) from None
+            refuse(str(err), err.exit_code)
         if missing:
             _MADE[path] = missing[-1]
+        return path
 
     def _give_back(self) -> None:
         from flamerecon.run.lock import release
@@ -218,24 +290,100 @@ class LockRunFolder(Callback):
             release(self.held)
             self.held = None
 
+    def _refuse_a_previous_run(self, config: DictConfig, folder: Path, what: str) -> None:
+        """Refuse ``folder`` when it holds anything but its lock, unless ``overwrite=true``
+        (then the run's files go, :func:`~flamerecon.run.folder.clear_run`)."""
+        import logging
+
+        from flamerecon.run.folder import clear_run, run_entries
+        from flamerecon.run.lock import LOCK_FILE
+
+        held = sorted(p.name for p in folder.iterdir() if p.name != LOCK_FILE)
+        if not held:
+            return
+        if config.get("overwrite") is True:
+            if what == "sweep":
+                jobs = [p for p in folder.iterdir() if p.is_dir() and not p.is_symlink() and (p / ".hydra").is_dir()]
+                for job in jobs:
+                    clear_run(job)
+                    with contextlib.suppress(OSError):
+                        job.rmdir()
+            removed = clear_run(folder)
+            logging.getLogger(__name__).warning("overwrite=true: removed the previous %s's %s from %s", what,
+                                                ", ".join(removed) or "job folders", folder)
+            return
+        self._give_back()
+        shown = ", ".join(held[:4]) + (", ..." if len(held) > 4 else "")
+        key = "hydra.sweep.dir" if what == "sweep" else "hydra.run.dir"
+        if run_entries(folder):
+            again = (f"continue it with resume={folder}, " if (folder / CHECKPOINT_FILE).is_file() else "")
+            refuse(f"{folder}: holds a previous {what} ({shown}); flamerecon does not write over it: write into a "
+                   f"new folder ({key}=...), {again}or replace it with overwrite=true")
+        refuse(f"{folder}: is not empty ({shown}); write the {what} into a new or empty folder ({key}=...), or "
+               "add overwrite=true to write it there anyway (other files are left as they are)")
+
+    @staticmethod
+    def _no_links(folder: Path) -> None:
+        from flamerecon.run.folder import RUN_SUBFOLDERS
+
+        for name in RUN_SUBFOLDERS:
+            if (folder / name).is_symlink():
+                refuse(f"{folder / name}: is a symbolic link (to {os.readlink(folder / name)}); flamerecon "
+                       "writes only inside the run folder: remove the link, or write the run into another folder")
+
+    @staticmethod
+    def _resume_here(config: DictConfig) -> None:
+        """``hydra.run.dir`` set to the folder ``resume=`` names, and no ``.hydra/`` written
+        (the run's own config stays); a folder that is no run folder is refused first."""
+        from omegaconf import open_dict, read_write
+
+        from flamerecon.run.folder import CONFIG_FILE
+
+        folder = Path(os.path.expanduser(str(config.resume))).absolute()
+        if not (folder / CONFIG_FILE).is_file():
+            refuse(f"resume={config.resume}: {folder / CONFIG_FILE} not found; is {folder} a flamerecon run folder?")
+        with read_write(config), open_dict(config):
+            config.hydra.run.dir = str(folder)
+            config.hydra.output_subdir = None
+
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._take(config, "hydra.run.dir")
+        resume = bool(config.get("resume"))
+        if resume:
+            self._resume_here(config)
+        folder = self._take(config, "hydra.run.dir")
+        if not resume:
+            self._refuse_a_previous_run(config, folder, "run")
+        self._no_links(folder)
 
     def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
         self._give_back()
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self._take(config, "hydra.sweep.dir")
+        folder = self._take(config, "hydra.sweep.dir")
+        self._refuse_a_previous_run(config, folder, "sweep")
 
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        self._give_back()
+
+def refuse(message: str, status: int = 2) -> None:
+    """End the command before any work with ``flamerecon: error: message``, leaving no folder
+    it made (:func:`discard_unused`)."""
+    discard_unused()
+    say(f"flamerecon: error: {message}")
+    raise SystemExit(status)
 
 
 class FailureSummary(Callback):
-    """Hydra callback: after a multirun, list the jobs that failed and exit with status 2."""
+    """Hydra callback: after a multirun, print its jobs side by side (what set each apart, its
+    held-out scores; also ``sweep_summary.csv``), then list the jobs that failed and exit with
+    status 2."""
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
+        if sweep_dir.is_dir():
+            print(sweep_table(sweep_dir), flush=True)
+            try:
+                print(f"table: {write_sweep_csv(sweep_dir)}", flush=True)
+            except FlameReconError as err:  # a full disk: the table above is printed all the same
+                print(f"flamerecon: {err}", file=sys.stderr)
         failed = failures(sweep_dir)
         if not failed:
             return

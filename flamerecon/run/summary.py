@@ -64,10 +64,13 @@ def summary_table(metrics: dict) -> str:
     ]
     if "timing" in metrics:
         rows.append(("time split [s]", time_split(metrics["timing"])))
+    if "memory" in metrics:
+        rows.append(("peak memory [GiB]", f"{metrics['memory']['resident']:.2f} resident" + (
+            f", {metrics['memory']['device']:.2f} on the GPU" if "device" in metrics["memory"] else "")))
     if "levels" in s:
         rows.append(("grid levels", "; ".join(
-            f"{cells_of(r['resolution'])}: {r['iterations']} it, "
-            f"{r['setup_seconds']:.2f} s setup + {r['seconds']:.2f} s solve"
+            f"{cells_of(r['resolution'])}" + (f" on {r['image'][0]}x{r['image'][1]} px" if "image" in r else "")
+            + f": {r['iterations']} it, {r['setup_seconds']:.2f} s setup + {r['seconds']:.2f} s solve"
             for r in s["levels"])))
     width = max(len(r[0]) for r in rows)
     return "\n".join([f"  {k:<{width}}  {v}" for k, v in rows] + warnings_block(metrics.get("warnings", [])))

@@ -52,5 +52,25 @@ def load_frame(scene: Scene, frame: int) -> Scene:
     return load_scene({**config, "frame": int(frame)})
 
 
-__all__ = ["SCENE_KEYS", "SCENE_LOADERS", "Scene", "SceneError", "load_frame", "load_scene", "register_built_in",
+def capture_length(scene: Scene) -> int:
+    """How many frames every camera of the capture ``scene`` was read from holds (the fewest
+    over its cameras; :func:`~flamerecon.scenes.frames.source_length` of the files of
+    ``meta["files"]``), 1 for a scene without them (a synthetic one)."""
+    from flamerecon.scenes.frames import source_length
+
+    files = scene.meta.get("files") or []
+    return min((source_length(f) for f in files), default=1)
+
+
+def load_downscaled(scene: Scene, downscale: int) -> Scene:
+    """The frame of ``scene`` loaded again at ``downscale`` (as ``scene.downscale`` loads it:
+    images area-averaged from the capture's own, intrinsics scaled to match)."""
+    config = scene.meta.get("config")
+    if config is None:
+        raise SceneError(f"scene '{scene.name}' was not loaded by load_scene, so it cannot be loaded at another "
+                         "resolution; load it with flamerecon.load_scene")
+    return load_scene({**config, "downscale": int(downscale)})
+
+
+__all__ = ["SCENE_KEYS", "SCENE_LOADERS", "Scene", "SceneError", "capture_length", "load_downscaled", "load_frame", "load_scene", "register_built_in",
            "register_scene"]

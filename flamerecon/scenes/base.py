@@ -54,6 +54,10 @@ class Scene:
         self.views, self.default_holdout = one_or_many(self.views), one_or_many(self.default_holdout)
         self.bbox_min, self.bbox_max = checked_box(self.bbox_min, self.bbox_max, "Scene")
         fields(self)
+        for name in self.views:
+            if not isinstance(name, str) or not name or any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
+                raise SceneError(f"{self.source or 'Scene.views'}: view name {name!r} is empty or holds a control "
+                                 "character (NUL, newline, tab, ...); name each view with printable text")
         images = tensor("Scene.images", self.images, "(B, C, H, W) in [0, 1]", ndim=4)
         self.images = images.float()  # float32, as every loader gives them
         B, _, H, W = images.shape

@@ -27,6 +27,7 @@ from types import ModuleType
 import kornia
 import torch
 
+from flamerecon.errors import torch_reason
 from flamerecon.outputs.atomic import atomic_write_bytes
 from flamerecon.resources import __version__
 
@@ -86,7 +87,8 @@ def _read(path: Path, key: str) -> dict[str, torch.Tensor] | None:
     except FileNotFoundError:
         return None
     except Exception as err:  # noqa: BLE001 - any unreadable entry is recomputed
-        log.warning("scene cache: %s is unreadable (%s); computing it again", path, err)
+        log.warning("scene cache: %s is unreadable (%s: %s); computing it again and replacing it", path,
+                    type(err).__name__, torch_reason(err, "scene-cache entry"))
         return None
     log.warning("scene cache: %s does not match its contents; computing it again", path)
     return None

@@ -7,7 +7,6 @@ Every check raises :class:`SceneError` with one line that names the file and the
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -15,9 +14,11 @@ import cv2
 import numpy as np
 import torch
 
+from flamerecon.errors import ConfigError
 from flamerecon.geometry.cameras import make_cameras
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import estimate_bbox, silhouettes
+from flamerecon.plain import json_value
 from flamerecon.resources import checkout_root
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.frames import is_link_loop
@@ -66,9 +67,8 @@ def read_json_object(root: Path, file_name: str, expected: str) -> tuple[dict, P
     if not path.is_file():
         raise SceneError(f"{path}: {file_name} not found")
     try:
-        with open(path) as f:
-            data = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        data = json_value(path.read_text())
+    except (ValueError, OSError) as err:
         raise SceneError(f"{path}: not valid JSON ({err})") from None
     if not isinstance(data, dict):
         raise SceneError(f"{path}: top level must be an object with {expected}")
@@ -255,8 +255,10 @@ def choose_box(cfg, file_box, cams, images: torch.Tensor, source) -> tuple[tuple
     if file_box is not None:
         return file_box[0], file_box[1], f"{source}"
     try:
-        masks = silhouettes(images, **silhouette_options(cfg))
+        masks = silhouettes(images, **silhouette_options(cfg), field="scene.silhouette")
         lo, hi = estimate_bbox(cams, masks)
+    except ConfigError:
+        raise
     except ValueError as err:
         raise SceneError(f"{source}: no box in the file or config, and {err}") from None
     return lo, hi, "silhouette cones"

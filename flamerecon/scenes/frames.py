@@ -8,12 +8,17 @@ A camera named ``NAME`` (or ``NAME.mp4``, as PINF's ``file_name`` writes it) fin
 - a video ``NAME.<ext>`` for the extensions above.
 
 Images come back as float32 arrays (H, W, C) in [0, 1], C = 1 (grayscale) or 3 (RGB);
-an alpha channel is composited over black (the emission model's empty background).
+an alpha channel is composited over black (the emission model's empty background). A JPEG is
+read as displayed (its EXIF orientation applied, as ``cv2.imread`` and image viewers do); file
+extensions match in either case (``train00.MP4``); a 16-bit image holding only 8-bit values is
+refused (it would read 257 times too dark), and so is an OpenEXR frame this OpenCV cannot read,
+with the reason.
 """
 
 from __future__ import annotations
 
 import errno
+import functools
 import os
 from pathlib import Path
 
@@ -32,6 +37,9 @@ def _to_float_rgb(raw: np.ndarray, path: Path) -> np.ndarray:
     if raw.dtype == np.uint8:
         img = raw.astype(np.float32) / 255.0
     elif raw.dtype == np.uint16:
+        if 0 < int(raw.max()) <= 255:
+            raise SceneError(f"{path}: a 16-bit image whose brightest value is {int(raw.max())} of 65535: 8-bit values "
+                             "saved in 16 bits, which read 257 times too dark; save it as 8-bit, or scale it to 16 bits")
         img = raw.astype(np.float32) / 65535.0
     elif raw.dtype in (np.float32, np.float64):
         img = raw.astype(np.float32)
@@ -57,11 +65,29 @@ def read_image(path: str | Path) -> np.ndarray:
     if not path.is_file():
         refuse_link_loop(path)
         raise SceneError(f"{path}: image file not found")
+    as_displayed = path.suffix.lower() in (".jpg", ".jpeg")  # EXIF orientation applied; no alpha, 8 bits
+    flags = cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH if as_displayed else cv2.IMREAD_UNCHANGED
     with native_stderr_silenced():  # libpng and friends print their own complaint
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        raw = cv2.imread(str(path), flags)
     if raw is None or raw.size == 0:
+        if path.suffix.lower() == ".exr" and openexr_missing():
+            raise SceneError(f"{path}: {openexr_missing()}")
         raise SceneError(f"{path}: cannot decode the image (corrupt file or unknown format)")
     return _to_float_rgb(raw, path)
+
+
+@functools.cache
+def openexr_missing() -> str | None:
+    """Why this OpenCV cannot read OpenEXR files (None where it can): a build without the
+    codec, or one that reads it only with ``OPENCV_IO_ENABLE_OPENEXR=1`` set."""
+    build = [line for line in cv2.getBuildInformation().splitlines() if "OpenEXR" in line]
+    if not build or any(line.split(":")[-1].strip().upper().startswith("NO") for line in build):
+        return (f"this OpenCV ({cv2.__version__}) is built without OpenEXR, so it cannot read .exr files; convert "
+                "the frames to 32-bit float TIFF or 16-bit PNG")
+    if os.environ.get("OPENCV_IO_ENABLE_OPENEXR", "").lower() not in ("1", "true", "on", "yes"):
+        return ("OpenCV reads .exr files only with OPENCV_IO_ENABLE_OPENEXR=1 in the environment (off by default); "
+                "set it and run again, or convert the frames to 32-bit float TIFF or 16-bit PNG")
+    return None
 
 
 def video_length(path: str | Path) -> int:
@@ -142,9 +168,9 @@ def frame_source(root: str | Path, name: str) -> Path:
     if folder.is_dir():
         return folder
     for ext in VIDEO_EXTENSIONS:
-        video = root / f"{stem}{ext}"
-        if video.is_file():
-            return video
+        for video in (root / f"{stem}{ext}", root / f"{stem}{ext.upper()}"):
+            if video.is_file():
+                return video
     raise SceneError(
         f"{root}: camera '{name}': found neither a video {stem}.mp4 (or "
         f"{'/'.join(VIDEO_EXTENSIONS[1:])}) nor a folder of frames {stem}/"
@@ -163,6 +189,23 @@ def frame_file(folder: Path, frame: int) -> Path:
         f"frames {', '.join(have[:6])}{', ...' if len(have) > 6 else ''}" if have else "no images"
     )
     raise SceneError(f"{folder}: frame {frame}: no file {frame:06d}.png there (it has {listing})")
+
+
+def source_length(path: str | Path) -> int:
+    """How many frames the source of a frame read from ``path`` holds: a video's frame count
+    (its container's, not decoded), the numbered images beside a frame of a frame folder, 1 for
+    an image on its own."""
+    path = Path(path)
+    if path.suffix.lower() in VIDEO_EXTENSIONS:
+        with native_stderr_silenced():
+            cap = cv2.VideoCapture(str(path))
+            try:
+                return max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 1)
+            finally:
+                cap.release()
+    if path.stem.isdigit():
+        return sum(1 for p in path.parent.iterdir() if p.stem.isdigit() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    return 1
 
 
 def read_camera_frame(root: str | Path, name: str, frame: int) -> tuple[np.ndarray, Path]:
@@ -188,7 +231,7 @@ def read_path_frame(base: str | Path, relpath: str, frame: int) -> tuple[np.ndar
             return read_video_frame(path, frame), path
         return read_image(path), path
     for ext in IMAGE_EXTENSIONS:
-        candidate = path.with_name(path.name + ext)
-        if candidate.is_file():
-            return read_image(candidate), candidate
+        for candidate in (path.with_name(path.name + ext), path.with_name(path.name + ext.upper())):
+            if candidate.is_file():
+                return read_image(candidate), candidate
     raise SceneError(f"{path}: image file not found")

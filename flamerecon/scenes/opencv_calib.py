@@ -23,7 +23,6 @@ name inside ``root``; default: the first of calibration.yaml/.yml/.xml/.json), `
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 import yaml
 
 from flamerecon.arguments import one_or_many
+from flamerecon.plain import json_value
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.calibration import (
@@ -124,9 +124,8 @@ def read_calibration_file(path: Path) -> dict:
     suffix = path.suffix.lower()
     if suffix == ".json":
         try:
-            with open(path) as f:
-                data = json.load(f)
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            data = json_value(path.read_text())
+        except (ValueError, OSError) as err:
             raise SceneError(f"{path}: not valid JSON ({err})") from None
     else:
         with open(path, "rb") as f:
@@ -139,6 +138,8 @@ def read_calibration_file(path: Path) -> dict:
                     data = yaml.safe_load(f)
             except yaml.YAMLError as err:
                 raise SceneError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from None
+            except RecursionError:
+                raise SceneError(f"{path}: not valid YAML (nested too deeply to read)") from None
     if not isinstance(data, dict):
         raise SceneError(f"{path}: top level must be a map")
     return data

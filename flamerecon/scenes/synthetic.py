@@ -19,13 +19,22 @@ import sys
 import torch
 import torch.nn.functional as F
 
+from flamerecon.errors import MemoryBudgetError
 from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
 from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.machine import MEMORY_SHARE, available_bytes, format_bytes
 from flamerecon.operators.projector import render_image
 from flamerecon.scenes import register_scene
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.cache import cached
-from flamerecon.scenes.values import NONNEGATIVE, POSITIVE, read_array, read_float, read_int, read_text
+from flamerecon.scenes.values import (
+    NONNEGATIVE,
+    POSITIVE,
+    read_array,
+    read_float,
+    read_int,
+    read_text,
+)
 
 #: the modules whose code makes the rendered scene (part of its cache key)
 _RENDER_CODE = ("flamerecon.scenes.synthetic", "flamerecon.operators.projector", "flamerecon.geometry.grid", "flamerecon.geometry.cameras")
@@ -192,6 +201,36 @@ def downscale(images: torch.Tensor, cams, factor: int):
     return small, make_cameras(K, cams.extrinsics, h, w)
 
 
+#: bytes per phantom cell while the phantom is made (its points, noise octaves, the volume)
+PHANTOM_BYTES_PER_CELL = 96
+#: bytes per pixel and channel of the images while they are made (clean, noise, noisy, scaled)
+IMAGE_BYTES_PER_VALUE = 32
+#: bytes per camera (kornia's 4x4 intrinsics and extrinsics, the look-at temporaries)
+CAMERA_BYTES = 1024
+
+
+def check_memory(n: int, width: int, height: int, truth_grid: VoxelGrid) -> None:
+    """Refuse, naming the option, a scene whose phantom or images would not fit in the memory
+    free now (:class:`~flamerecon.errors.MemoryBudgetError`): torch would otherwise fail
+    halfway, or the machine swap."""
+    free = available_bytes("cpu")
+    if free is None:
+        return
+    phantom = math.prod(truth_grid.resolution) * PHANTOM_BYTES_PER_CELL
+    images = n * (width * height * 3 * IMAGE_BYTES_PER_VALUE + CAMERA_BYTES)
+    if phantom + images <= MEMORY_SHARE * free:
+        return
+    if phantom >= images:
+        what = (f"scene.phantom_resolution: a {'x'.join(map(str, truth_grid.resolution))} phantom needs about "
+                f"{format_bytes(phantom)}")
+        fix = "a smaller scene.phantom_resolution (128 is the default)"
+    else:
+        what = (f"scene.n_cameras x scene.width x scene.height: {n} images of {width}x{height} px need about "
+                f"{format_bytes(images)}")
+        fix = "fewer or smaller images (scene.n_cameras, scene.width, scene.height)"
+    raise MemoryBudgetError(f"config: {what} while it is made, but {format_bytes(free)} is free; use {fix}")
+
+
 @register_scene("synthetic", keys=("n_cameras", "width", "height", "downscale", "frame", "seed",
                                          "phantom_resolution", "phantom_step", "noise", "peak", "field",
                                          "azimuths", "calibration_error"))
@@ -217,9 +256,10 @@ def load(cfg) -> Scene:
                              f"scene.n_cameras = {n} angles in degrees (or null: evenly spaced)")
         azimuths = [float(a) for a in azimuths]
     error_px = read_float(cfg.get("calibration_error", 0.0), "config", "scene.calibration_error", NONNEGATIVE)
-    cams = ring_cameras(n, W, H, azimuths=azimuths)
     phantom = read_int(cfg.get("phantom_resolution", 128), "config", "scene.phantom_resolution", 2)
     truth_grid = VoxelGrid.from_box(BOX_MIN, BOX_MAX, phantom)
+    check_memory(n, W, H, truth_grid)
+    cams = ring_cameras(n, W, H, azimuths=azimuths)
     step = read_float(cfg.get("phantom_step", 0.5), "config", "scene.phantom_step", POSITIVE)
 
     def render() -> dict[str, torch.Tensor]:

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from flamerecon import interrupt
 from flamerecon.arguments import conforms, tensor, value, wrong_type, wrong_value
 from flamerecon.operators.base import LinearOperator, norm_sq
 from flamerecon.rules import integer, list_of, number
@@ -166,6 +167,7 @@ class Solver:
         start = self.set_up(problem, x, resume)
         converged, it = self.reached_at_start(), start - 1
         for it in range(start, self.max_iters + 1) if not converged else ():
+            interrupt.check()  # a stop signal recorded during the solve, acted on within an iteration
             self.step(it)
             if not self.is_check(it):
                 continue

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from flamerecon import interrupt
 from flamerecon.solvers.base import Callback, LinearOperator, Problem, Solver, SolveResult, register
 
 
@@ -59,6 +60,7 @@ class Lars(Solver):
         max_iter = self.max_iters if self.max_iters is not None else 10 * M + 10
         cols, steps, converged = [], 0, True
         for c in range(b.shape[1]):
+            interrupt.check()
             _, _, coef, n_iter = lars_path_gram(
                 Xy[:, c], G, n_samples=N, alpha_min=problem.l1 / N, method="lasso",
                 positive=True, max_iter=max_iter, return_path=False, return_n_iter=True,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from flamerecon import interrupt
 from flamerecon.solvers.base import Callback, Problem, Solver, SolveResult, gap_report, register
 
 
@@ -40,6 +41,7 @@ class Lbfgsb(Solver):
             return torch.from_numpy(z).to(device=device, dtype=dtype).view(shape)
 
         def fun(z: np.ndarray) -> tuple[float, np.ndarray]:
+            interrupt.check()
             xt = to_torch(z)
             r = A.forward(xt) - b
             g = A.adjoint(r)

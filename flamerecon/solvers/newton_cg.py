@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import torch
 
+from flamerecon import interrupt
 from flamerecon.solvers.base import (
     Callback,
     Problem,
@@ -67,6 +68,7 @@ class NewtonCG(Solver):
         f = 0.5 * (r.double() ** 2).sum(0) + lam * x.double().sum(0)
         converged, it = False, 0
         for it in range(1, self.max_iters + 1):
+            interrupt.check()
             g = ATr + lam
             free = (x > 0) | (g < 0)
             d = self._newton_direction(A, g, free, diag)
@@ -96,6 +98,7 @@ class NewtonCG(Solver):
         stop = self.cg_tol**2 * rz
         d = torch.zeros_like(g)
         for _ in range(self.cg_iters):
+            interrupt.check()
             q = A.adjoint(A.forward(p)) * mask
             pq = (p * q).sum(0)
             alpha = torch.where((pq > 0) & (rz > stop), rz / pq.clamp_min(1e-300), 0.0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import torch
 
+from flamerecon import interrupt
 from flamerecon.operators.sparse import CsrOperator, csr_matmul
 from flamerecon.solvers.base import Problem, Solver, gap_report, power_norm_sq, register
 
@@ -81,6 +82,7 @@ class Ssnal(Solver):
         # ||x~ - x||^2 with a summable delta, above the rounding floor of y + b - A x~
         delta = 0.5 / it**1.1
         for k in range(self.newton_iters + 1):
+            interrupt.check()
             v = x - sigma * w
             xt = v.clamp_min(0)
             Axt = A.forward(xt)
@@ -122,6 +124,7 @@ class Ssnal(Solver):
         stop = self.cg_tol**2 * (s.double() ** 2).sum(0)
         d = torch.zeros_like(grad)
         for _ in range(self.cg_iters):
+            interrupt.check()
             q = p + sigma * A.forward(A.adjoint(p) * mask)
             pq = (p.double() * q).sum(0)
             alpha = torch.where(pq > 0, rz / pq.clamp_min(1e-300), 0.0).to(d.dtype)

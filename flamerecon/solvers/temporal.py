@@ -31,6 +31,7 @@ from itertools import pairwise
 import torch
 import torch.nn.functional as F
 
+from flamerecon import interrupt
 from flamerecon.operators import HullGradient
 from flamerecon.solvers.base import LinearOperator, power_norm_sq
 from flamerecon.solvers.primal_dual_tv import project_balls, total_variation
@@ -194,6 +195,7 @@ def solve_joint(frames: list[FrameProblem], opts: JointOptions,
     converged, it = False, 0
     previous = [x.clone() for x in xs]
     for it in range(1, opts.max_iters + 1):
+        interrupt.check()
         g = smooth_grad(xs)
         tz = T.adjoint(zs, xs[0]) if opts.tv > 0 else [0.0] * len(xs)
         new = [(x - tau * (gt + D.adjoint(y) + tzt + f.l1)).clamp_min_(0)

@@ -16,9 +16,9 @@ from .problems import (
            sklearn_objective,
            tiny_problem,
 )
-from .scene import defective, tiny_cfg, tiny_synthetic
+from .scene import defective, tiny_cfg, tiny_reconstruction, tiny_synthetic
 
 __all__ = ["FAST", "HELDOUT", "REPO", "SMALLER", "TINY", "TINY_API_SETUP", "TRAIN", "VIEWS", "CliRun", "assert_columns_solved_alone_alike", "assert_resumes_exactly", "csr",
            "defective", "interrupt_at", "objective", "python_stdout", "random_coo", "random_hull", "random_rays", "repo_env",
            "ring_of_cameras", "sklearn_objective", "tiny_cfg", "tiny_config", "tiny_problem",
-           "tiny_synthetic", "tmpfs"]
+           "tiny_reconstruction", "tiny_synthetic", "tmpfs"]

@@ -24,6 +24,19 @@ def tiny_cfg(*overrides: str):
 
 
 @functools.lru_cache(maxsize=1)
+def tiny_reconstruction():
+    """``fr.reconstruct`` of a smaller synthetic scene (3 cameras at 24x18, an 8-cell grid, 5
+    iterations): seconds, made once per session (the API tests share it; one that edits it
+    puts it back)."""
+    import flamerecon as fr
+
+    scene = fr.load_scene({"name": "synthetic", "width": 24, "height": 18, "n_cameras": 3, "phantom_resolution": 16})
+    options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=8), device="cpu",
+                                       solver=fr.SolverOptions(params={"max_iters": 5}))
+    return fr.reconstruct(scene, options)
+
+
+@functools.lru_cache(maxsize=1)
 def tiny_synthetic():
     return load_synthetic(OmegaConf.create({"name": "synthetic", "n_cameras": 5, "width": 48, "height": 36,
                                                 "phantom_resolution": 32}))
