@@ -19,7 +19,9 @@ solves consecutive frames jointly; ``fr.reconstruct_motion(scenes, options, fr.M
 reconstructs one frame with its neighbours' views carried onto it by their motion;
 ``fr.estimate_flow(recs)`` fits a velocity to each consecutive pair of reconstructions and
 ``fr.advect(density, u, k)`` carries a density k frames along one; ``v = fr.view(rec)`` serves it
-to a browser (``v.url``; ``v.stop()``). Names are imported on first use.
+to a browser (``v.url``; ``v.stop()``); ``conf = fr.confidence(rec)`` says what the cameras
+determine (``conf.volume()``, and ``fr.uncertainty(conf, cameras)``: the predicted spread of any
+camera's render). Names are imported on first use.
 
 Every public function and class checks its arguments before any work: a wrong type raises
 :class:`~flamerecon.errors.ArgumentTypeError` (a ``TypeError``), a wrong shape or a value out
@@ -54,7 +56,8 @@ API = {
     "Reconstruction": "fit.reconstruct", "Fit": "fit.reconstruct", "SolveHook": "fit.reconstruct",
     "Stage": "fit.reconstruct", "fit": "fit", "reconstruct": "fit.reconstruct",
     "load_scene": "api", "render": "api", "score": "api", "make_solver": "api", "preset": "api",
-    "export": "api", "look_at_camera": "geometry.cameras", "orbit_cameras": "outputs.figures",
+    "export": "api", "confidence": "api", "uncertainty": "api", "Confidence": "evaluate.uncertainty",
+    "UncertaintyOptions": "fit.uncertainty_options", "look_at_camera": "geometry.cameras", "orbit_cameras": "outputs.figures",
     "Run": "run.folder", "load_run": "run.folder",
     "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
     "reconstruct_frames": "fit.joint_frames",
@@ -66,13 +69,14 @@ API = {
 # ``fit`` is the package flamerecon.fit itself, callable as flamerecon.fit.reconstruct.fit: a
 # package and a function cannot both be the attribute ``flamerecon.fit``.
 
-__all__ = ["DebiasOptions", "Fit", "Flow", "FlowOptions", "GridOptions", "HullOptions", "JointFramesOptions",
-           "JointReconstruction", "MotionOptions", "MotionReconstruction", "PhotometryOptions", "Problem", "ProjectorOptions",
-           "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
+__all__ = ["Confidence", "DebiasOptions", "Fit", "Flow", "FlowOptions", "GridOptions", "HullOptions",
+           "JointFramesOptions", "JointReconstruction", "MotionOptions", "MotionReconstruction", "PhotometryOptions",
+           "Problem", "ProjectorOptions", "Reconstruction", "ReconstructionOptions", "RefineOptions", "Run", "Scene",
            "SelectOptions", "Setup", "SilhouetteOptions", "SolveHook", "SolverOptions", "Stage",
-           "VoxelGrid", "advect", "build", "estimate_flow", "export", "fit", "framing_camera", "load_run", "load_scene",
-           "look_at_camera", "make_problem", "make_solver", "orbit_cameras", "preset", "reconstruct", "reconstruct_frames",
-           "reconstruct_motion", "render", "save_image", "score", "view"]
+           "UncertaintyOptions", "VoxelGrid", "advect", "build", "confidence", "estimate_flow", "export", "fit",
+           "framing_camera", "load_run", "load_scene", "look_at_camera", "make_problem", "make_solver", "orbit_cameras",
+           "preset", "reconstruct", "reconstruct_frames", "reconstruct_motion", "render", "save_image", "score",
+           "uncertainty", "view"]
 
 
 def __getattr__(name: str):

@@ -18,17 +18,28 @@ from kornia.geometry.camera import PinholeCamera
 from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_type, wrong_value
 from flamerecon.device import resolve_device
 from flamerecon.errors import ArgumentError, ConfigError
-from flamerecon.fit.build import build
+from flamerecon.evaluate.uncertainty import Confidence, load_confidence
+from flamerecon.fit.build import build, hull_values
+from flamerecon.fit.ensemble import confidence as solve_confidence
 from flamerecon.fit.flow import Flow, FlowOptions
 from flamerecon.fit.flow import estimate_flow as estimate_flow_core
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
+from flamerecon.fit.uncertainty_options import UncertaintyOptions
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import camera_rays, integrate_dense, render_image
 from flamerecon.outputs.atomic import make_folder
-from flamerecon.outputs.export import ALIASES, FORMATS, Density, export_density, load_density
+from flamerecon.outputs.export import (
+    ALIASES,
+    FORMATS,
+    UNCERTAINTY_FILE,
+    Density,
+    export_density,
+    load_density,
+    sigma_names,
+)
 from flamerecon.outputs.figures import _angles, orbit_cameras, write_png
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.resources import config_dir
@@ -132,6 +143,46 @@ def score(result: Reconstruction | Run) -> dict:
     return result.score()
 
 
+def confidence(result: Reconstruction | Run, options: UncertaintyOptions | None = None) -> Confidence:
+    """What the cameras determine in ``result`` (a Reconstruction, or a Run from
+    :func:`~flamerecon.run.folder.load_run`, whose ``uncertainty.npz`` is read when it has
+    one): the :class:`~flamerecon.evaluate.uncertainty.Confidence` from the ensemble of
+    ``options`` (default: the result's ``uncertainty`` options; ScalarFlow's preset carries the
+    scale chosen for it), solved here (a solve per member, warm-started). Keep it to render
+    several cameras: ``conf.image(cameras)`` (B, C, H, W) spreads, ``conf.volume()``
+    (C, nz, ny, nx); ``fr.export(conf, stem)`` writes the volume."""
+    instance("confidence.result", result, (Reconstruction, Run), "a Reconstruction (reconstruct) or a Run (load_run)")
+    instance("confidence.options", options, UncertaintyOptions, null=True)
+    if isinstance(result, Run):
+        saved = result.folder / UNCERTAINTY_FILE
+        if options is None and saved.is_file():
+            return load_confidence(saved, result.density.device)
+        run_options = result.options
+        chosen = (result.solver.get("selection") or {}).get("chosen")
+        if chosen:  # the weights the run chose at run time (select.auto)
+            run_options = run_options.replace(solver=run_options.solver.with_values(**chosen))
+        setup = build(result.scene, run_options, result.density.device)
+        x = hull_values(result.density, setup.grid, setup.voxel_index).to(setup.pixels)
+        return solve_confidence(setup, run_options, x, options)
+    return solve_confidence(result.setup, result.options, result.fit.result.x, options)
+
+
+def uncertainty(result: Reconstruction | Run | Confidence, cameras: PinholeCamera) -> torch.Tensor:
+    """The confidence images (B, C, H, W) of ``cameras`` (B of them, one size; held-out,
+    training or novel: :func:`flamerecon.look_at_camera`, :func:`flamerecon.orbit_cameras`):
+    per pixel the predicted one-sigma spread of the rendered value of ``result``'s density, in
+    image units. A Reconstruction or Run has its :func:`confidence` solved first (keep that to
+    render more cameras without solving again)."""
+    instance("uncertainty.result", result, (Reconstruction, Run, Confidence),
+             "a Reconstruction, a Run or a Confidence (fr.confidence)")
+    instance("uncertainty.cameras", cameras, PinholeCamera, "a kornia PinholeCamera batch")
+    sizes = {(int(h), int(w)) for h, w in zip(cameras.height.tolist(), cameras.width.tolist())}
+    if len(sizes) != 1:
+        raise wrong_value("uncertainty.cameras", sorted(sizes), "a batch of at least one camera, all of one image size")
+    found = result if isinstance(result, Confidence) else confidence(result)
+    return found.image(cameras)
+
+
 def make_solver(name: str, **options) -> Solver:
     """The solver registered as ``name`` with its own ``options`` (``max_iters=100, tol=1e-4``),
     each checked by its rule ``solver.<option>`` as the CLI checks it."""
@@ -142,11 +193,11 @@ def make_solver(name: str, **options) -> Solver:
 def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti",),
            iso: float = DEFAULT_ISO) -> list[Path]:
     """Write the density of ``result`` (a Reconstruction, a loaded Run, or a run folder or
-    density.npz) for other tools as ``<stem>.<format>``: ``vti`` (ParaView), ``nrrd``, ``raw``
+    density.npz; or the confidence volume of a :func:`confidence`) for other tools as ``<stem>.<format>``: ``vti`` (ParaView), ``nrrd``, ``raw``
     (+ ``.raw.json``), the iso-surface mesh at ``iso`` times the peak density as ``ply`` and
     ``obj`` (Blender, ParaView; ``mesh``: both), ``all``; returns the files written."""
-    instance("export.result", result, (Reconstruction, Run, str, os.PathLike),
-             "a Reconstruction, a Run, or a run folder or density.npz")
+    instance("export.result", result, (Reconstruction, Run, Confidence, str, os.PathLike),
+             "a Reconstruction, a Run, a Confidence (its volume), or a run folder or density.npz")
     instance("export.stem", stem, (str, os.PathLike), "a path without suffix")
     if not Path(stem).name or "\0" in str(stem) or Path(stem).is_dir():
         raise wrong_value("export.stem", stem, "a file path without suffix (e.g. 'out/flame'), not empty, not a folder, "
@@ -163,6 +214,10 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
         raise wrong_value("export.formats", formats, f"one or more of {known}")
     if isinstance(result, (str, os.PathLike)):
         volume = load_density(result)
+    elif isinstance(result, Confidence):
+        grid = result.grid
+        volume = Density(result.volume().detach().cpu().numpy().astype(np.float32), np.array(grid.bbox_min),
+                         np.array(grid.bbox_max), [])
     else:
         views = getattr(result, "train", None) or result.setup.train
         grid = result.grid
@@ -171,7 +226,8 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
     if Path(stem).parent.exists() and not Path(stem).parent.is_dir():
         raise wrong_value("export.stem", stem, f"a path in a folder ({Path(stem).parent} is a file)")
     make_folder(Path(stem).parent)
-    return export_density(volume, stem, formats, iso)
+    names = sigma_names(volume.density.shape[0]) if isinstance(result, Confidence) else None
+    return export_density(volume, stem, formats, iso, names)
 
 
 def view(result, port: int = 8080, host: str = "127.0.0.1", device: str = "auto"):

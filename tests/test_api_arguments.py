@@ -19,6 +19,7 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from kornia.geometry.camera import PinholeCamera
 
 import flamerecon as fr
 from flamerecon.errors import ArgumentError, ArgumentTypeError, FlameReconError, RunFolderError
@@ -38,6 +39,8 @@ NOT_APPLICABLE = {
     ("make_problem", "shape"): "takes a SolverOptions and a Setup, each checked when made",
     ("make_problem", "range"): "takes a SolverOptions and a Setup, each checked when made",
     ("build", "shape"): "takes a Scene, options and a grid, each checked when made",
+    ("confidence", "shape"): "takes a Reconstruction or Run and options, each checked when made",
+    ("confidence", "range"): "takes a Reconstruction or Run and options, each checked when made",
 }
 
 
@@ -59,8 +62,9 @@ def w():
     from flamerecon.fit.flow import PairFlow
 
     pair = PairFlow(torch.zeros(3, *rec.grid.shape), torch.zeros(3, 2, 2, 2), 0.1, 0.05, 0.1, 0.5, 1.0, False, 0)
+    conf = fr.confidence(rec)
     return SimpleNamespace(scene=scene, options=options, setup=setup, rec=rec, run=run, joint=joint, motion=motion,
-                           problem=problem, solver=solver, M=M, C=C, pair=pair)
+                           problem=problem, solver=solver, M=M, C=C, pair=pair, conf=conf)
 
 
 def hook_solve(w, **change):
@@ -74,6 +78,17 @@ def with_density(run, density):
     changed = replace(run)
     changed.density = density  # a Run is mutable: score checks what it is given
     return changed
+
+
+def mixed_sizes(w):
+    """Two of the scene's cameras, one with a smaller image."""
+    cams = w.scene.cameras
+    return PinholeCamera(cams.intrinsics[:2], cams.extrinsics[:2], torch.tensor([18.0, 10.0]), torch.tensor([24.0, 24.0]))
+
+
+def no_cameras(w):
+    cams = w.scene.cameras
+    return PinholeCamera(cams.intrinsics[:0], cams.extrinsics[:0], cams.height[:0], cams.width[:0])
 
 
 def nan_at_start(t: torch.Tensor) -> torch.Tensor:
@@ -258,6 +273,24 @@ CASES = [
     ("preset", "range", lambda w: fr.preset("synthetic", "grid.resolution=-3"), VALUE, "grid.resolution"),
     ("preset", "range", lambda w: fr.preset("synthtic"), VALUE, "preset.scene"),
     ("preset", "range", lambda w: fr.preset("synthetic", "solver.max_iter=3"), VALUE, "preset.overrides"),
+    ("UncertaintyOptions", "none", lambda w: fr.UncertaintyOptions(scale=None), TYPE, "uncertainty.scale"),
+    ("UncertaintyOptions", "type", lambda w: fr.UncertaintyOptions(enabled="yes"), TYPE, "uncertainty.enabled"),
+    ("UncertaintyOptions", "shape", lambda w: fr.UncertaintyOptions(shift_voxels=[0.5]), TYPE,
+     "uncertainty.shift_voxels"),
+    ("UncertaintyOptions", "range", lambda w: fr.UncertaintyOptions(scale=0.0), VALUE, "uncertainty.scale"),
+    ("UncertaintyOptions", "range", lambda w: fr.UncertaintyOptions(members="views"), VALUE, "uncertainty.members"),
+    ("confidence", "none", lambda w: fr.confidence(None), TYPE, "confidence.result"),
+    ("confidence", "type", lambda w: fr.confidence(w.rec, {"scale": 2.0}), TYPE, "confidence.options"),
+    ("uncertainty", "none", lambda w: fr.uncertainty(w.conf, None), TYPE, "uncertainty.cameras"),
+    ("uncertainty", "type", lambda w: fr.uncertainty(w.rec.density, w.scene.cameras), TYPE, "uncertainty.result"),
+    ("uncertainty", "shape", lambda w: fr.uncertainty(w.conf, mixed_sizes(w)), VALUE, "uncertainty.cameras"),
+    ("uncertainty", "range", lambda w: fr.uncertainty(w.conf, no_cameras(w)), VALUE, "uncertainty.cameras"),
+    ("Confidence", "none", lambda w: replace(w.conf, grid=None), TYPE, "Confidence.grid"),
+    ("Confidence", "type", lambda w: replace(w.conf, hull=w.conf.hull.float()), TYPE, "Confidence.hull"),
+    ("Confidence", "shape", lambda w: replace(w.conf, members=w.conf.members[:, 1:]), VALUE, "Confidence.members"),
+    ("Confidence", "range", lambda w: replace(w.conf, scale=-1.0), VALUE, "Confidence.scale"),
+    ("Confidence", "range", lambda w: replace(w.conf, groups=["views"] * len(w.conf.groups)), VALUE,
+     "Confidence.groups"),
     ("export", "none", lambda w: fr.export(None, "out/a"), TYPE, "export.result"),
     ("export", "type", lambda w: fr.export(w.rec, 42), TYPE, "export.stem"),
     ("export", "shape", lambda w: fr.export(w.rec, "out/a", [["vti"]]), TYPE, "export.formats[0]"),
@@ -407,7 +440,7 @@ ANYTHING = st.one_of(
 )
 SECTIONS = {"grid": fr.GridOptions, "projector": fr.ProjectorOptions, "silhouette": fr.SilhouetteOptions,
             "hull": fr.HullOptions, "photometry": fr.PhotometryOptions, "debias": fr.DebiasOptions,
-            "calibration": fr.RefineOptions, "select": fr.SelectOptions}
+            "calibration": fr.RefineOptions, "select": fr.SelectOptions, "uncertainty": fr.UncertaintyOptions}
 FIELDS = [(section, f.name) for section, cls in SECTIONS.items() for f in dataclasses.fields(cls)]
 
 

@@ -42,6 +42,7 @@ BOUNDS = {
     "calibration.first_iterations": (MAX_ITERATIONS, "runs for days"),
     "calibration.solve_iterations": (MAX_ITERATIONS, "runs for days"),
     "debias.iterations": (MAX_ITERATIONS, "runs for days"),
+    "uncertainty.iterations": (MAX_ITERATIONS, "runs for days"),
     "motion.iters": (MAX_ITERATIONS, "runs for days"),
     "solver.cg_iters": (MAX_ITERATIONS, "runs for days"),
     "solver.newton_iters": (MAX_ITERATIONS, "runs for days"),

@@ -144,6 +144,7 @@ CALLS = {
     "motion_eval": (lambda t, run, dump: [*SYNTHETIC, "--frames", "1", "--windows", "1,3", "--decay", "1",
                                           "--static"], r"mean +3 density s=0.01 decay=1 .*\n.*static"),
     "operator_memory": (lambda t, run, dump: ["--grid", "8", *SYNTHETIC], r"operator: \d+ rays .* nonzeros \(estimate"),
+    "plan_cameras": (lambda t, run, dump: [str(copied(run, t)), "--orbit", "6"], r"rank camera .*\n +1 orbit0\d "),
     "preconditioning_study": (lambda t, run, dump: ["--grid", "8", "--iters", "20", "--variants", "lipschitz",
                                                     "--dump", str(dump)], r"lipschitz +"),
     "refine_cameras": (lambda t, run, dump: [*SYNTHETIC, "calibration.rounds=1", "--modes", "pose",
@@ -157,6 +158,8 @@ CALLS = {
                         r"(?s)\s+4\s+8\s.*\n\s+2\s+12\s.*wrote .*s\.json"),
     "sequence_benchmark": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC],
                            r"1/2, \d+ s left\n(.|\n)*2/2, 0 s left\n(.|\n)*2 frames in .* per minute"),
+    "uncertainty_check": (lambda t, run, dump: ["--frames", "0", "--out", str(t / "new" / "u.json"), *SYNTHETIC],
+                          r"    0 cam04 .*\n.*volume: rank correlation"),
     "temporal_eval": (lambda t, run, dump: [*SYNTHETIC, "scene.frames=[0,1]", "--weights", "0:0", "--no-baseline"],
                       r"joint l2=0 tv=0 .* +1 "),
 }
@@ -188,7 +191,7 @@ def test_help_prints_the_whole_docstring(name, capsys):
 def test_a_tiny_real_call(name, tmp_path, capsys, request, monkeypatch):
     monkeypatch.chdir(tmp_path)  # default output folders land here
     make, shows = CALLS[name]
-    run = request.getfixturevalue("finished_run") if name in ("evaluate", "export", "render") else None
+    run = request.getfixturevalue("finished_run") if name in ("evaluate", "export", "render", "plan_cameras") else None
     run = request.getfixturevalue("plume_sweep") if name == "flow" else run
     dump = request.getfixturevalue("benchmark_dump") if name in ("benchmark", "preconditioning_study") else None
     code = call(name, make(tmp_path, run, dump))
@@ -259,6 +262,11 @@ BAD = [
     ("flow", ["SWEEP", "flow.smooth=-1"], r"flow\.smooth: got -1; flow\.smooth must be >= 0"),
     ("flow", ["SWEEP"], r"no run folder with density\.npz"),
     ("flow_benchmark", ["--frames", "3", "3"], r"argument --frames: FIRST 3 is not before LAST 3"),
+    ("uncertainty_check", ["--frames", "-1", "--out", "u.json"], r"argument --frames: got '-1'; give an integer >= 0"),
+    ("uncertainty_check", ["--frames", "1", "--out", "TMP"], r"argument --out: .*: is a folder; give a file name"),
+    ("plan_cameras", [], r"give one RUN_DIR"),
+    ("plan_cameras", ["--check-loo"], r"--check-loo needs --frames"),
+    ("plan_cameras", ["RUN", "--noise", "-1"], r"--noise: got -1.0; give a number > 0"),
 ]
 
 

@@ -166,16 +166,19 @@ def score_rendered(rendered: torch.Tensor, scene: Scene, views: list[int],
     return score_views(rendered, scene, views, silhouette_union(rendered, captured, silhouette), captured)
 
 
-def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int]) -> None:
-    """renders/<view>.png: rendered | captured | |error| with titles and the error's colour
-    bar (:func:`~flamerecon.outputs.figures.heldout_figure`), one per held-out view (the view
+def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: list[int],
+                  sigma: torch.Tensor | None = None) -> None:
+    """renders/<view>.png: rendered | captured | |error| (| predicted sigma, with ``sigma``:
+    the confidence images (V, C, H, W) of the renders) with titles and a colour bar
+    (:func:`~flamerecon.outputs.figures.heldout_figure`), one per held-out view (the view
     name made a safe, unique file name, :func:`~flamerecon.outputs.names.file_stems`)."""
     folder = make_subfolder(run_dir, "renders")
     stems = file_stems(scene.views)
-    for img, v in zip(rendered, views):
+    for k, (img, v) in enumerate(zip(rendered, views)):
         captured = scene.recorded_view(v)
+        spread = {} if sigma is None else {"sigma": sigma[k]}
         panel = heldout_figure(img, scene.images[v], scene.views[v], view_psnr(img, scene, v),
-                               psnr(torch.zeros_like(captured), captured))
+                               psnr(torch.zeros_like(captured), captured), **spread)
         ok, png = cv2.imencode(".png", np.ascontiguousarray(panel[..., ::-1]))
         if not ok:
             raise OSError(f"{folder}: could not encode the render of view {scene.views[v]}")

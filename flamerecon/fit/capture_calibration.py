@@ -46,9 +46,10 @@ from flamerecon.scenes.cache import cache_home, digest, entry_key
 log = logging.getLogger(__name__)
 
 #: options that do not change the cameras fitted: views held out (the training views are keyed),
-#: warm start, threads, the device (its type is keyed), the run's grid (the fit's is keyed) and
-#: the resolution ladder (the fit runs on one rung's images, which are keyed)
-UNKEYED = ("holdout", "init", "threads", "device", "grid", "ladder")
+#: warm start, threads, the device (its type is keyed), the run's grid (the fit's is keyed), the
+#: resolution ladder (the fit runs on one rung's images, which are keyed) and the confidence
+#: computed after the solve
+UNKEYED = ("holdout", "init", "threads", "device", "grid", "ladder", "uncertainty")
 
 
 @dataclass

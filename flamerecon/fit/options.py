@@ -26,6 +26,7 @@ from flamerecon.fit.option_rules import (
     leaves,
 )
 from flamerecon.fit.refine_cameras import RefineOptions
+from flamerecon.fit.uncertainty_options import UncertaintyOptions
 from flamerecon.fit.weight_selection import SelectionOptions
 from flamerecon.plain import plain
 from flamerecon.solvers import SOLVERS
@@ -189,7 +190,8 @@ class SelectOptions:
 
 SECTIONS = {"grid": GridOptions, "projector": ProjectorOptions, "silhouette": SilhouetteOptions,
             "hull": HullOptions, "photometry": PhotometryOptions, "debias": DebiasOptions,
-            "calibration": RefineOptions, "select": SelectOptions, "ladder": LadderOptions}
+            "calibration": RefineOptions, "select": SelectOptions, "ladder": LadderOptions,
+            "uncertainty": UncertaintyOptions}
 
 
 @dataclass(frozen=True)
@@ -207,6 +209,7 @@ class ReconstructionOptions:
     calibration: RefineOptions = field(default_factory=RefineOptions)
     select: SelectOptions = field(default_factory=SelectOptions)
     ladder: LadderOptions = field(default_factory=LadderOptions)
+    uncertainty: UncertaintyOptions = field(default_factory=UncertaintyOptions)
     holdout: tuple | None = None  # view names or indices; None: the scene's default
     init: str | None = None  # a finished run's folder or density.npz to warm-start from
     seed: int = 0

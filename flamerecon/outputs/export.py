@@ -34,7 +34,11 @@ from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface, marching_cubes, wr
 from flamerecon.outputs.vdb import write_vdb
 
 DENSITY_FILE = "density.npz"
+#: a run's confidence volume, in density.npz's format (:mod:`flamerecon.evaluate.uncertainty`)
+UNCERTAINTY_FILE = "uncertainty.npz"
 FORMATS = ("vti", "nrrd", "raw", "vdb", "ply", "obj")
+#: the formats of a volume (the others are its iso-surface)
+VOLUME_FORMATS = ("vti", "nrrd", "raw", "vdb")
 #: names for several formats at once
 ALIASES = {"all": FORMATS, "mesh": ("ply", "obj")}
 _RESERVED = ("density", "bbox_min", "bbox_max", "views")
@@ -73,6 +77,11 @@ def channel_names(num_channels: int) -> list[str]:
     if num_channels == 3:
         return ["R", "G", "B"]
     return [f"c{c}" for c in range(num_channels)]
+
+
+def sigma_names(num_channels: int) -> list[str]:
+    """The channel names of a confidence volume: each density channel's, ``_sigma`` appended."""
+    return [f"{name}_sigma" for name in channel_names(num_channels)]
 
 
 def density_path(run_dir_or_file: str | os.PathLike) -> Path:
@@ -366,25 +375,28 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
 
 
 def export_density(
-    volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO
+    volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO,
+    names: Sequence[str] | None = None,
 ) -> list[Path]:
     """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.vdb``,
     ``.ply`` and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
-    see :func:`~flamerecon.outputs.mesh.iso_surface`)."""
+    see :func:`~flamerecon.outputs.mesh.iso_surface`); ``names``: the channels' (default
+    :func:`channel_names`)."""
     formats = _check_formats(formats)
     stem = Path(out_stem)
     args = (volume.density, volume.bbox_min, volume.bbox_max)
     written: list[Path] = []
     if "vti" in formats:
-        written.append(write_vti(stem.with_name(stem.name + ".vti"), *args))
+        written.append(write_vti(stem.with_name(stem.name + ".vti"), *args, names))
     if "nrrd" in formats:
-        written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args))
+        written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args, names))
     if "raw" in formats:
-        written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, views=volume.views))
+        written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, names, views=volume.views))
     if "vdb" in formats:
         written.append(write_vdb(stem.with_name(stem.name + ".vdb"), volume.density,
                                  sample_origin(*args[1:], volume.density.shape),
-                                 voxel_size(*args[1:], volume.density.shape), channel_names(len(volume.density))))
+                                 voxel_size(*args[1:], volume.density.shape),
+                                 names or channel_names(len(volume.density))))
     meshes = [(f, w) for f, w in (("ply", write_ply), ("obj", write_obj)) if f in formats]
     if meshes:
         vertices, faces = iso_surface(*args, iso=iso)
@@ -395,9 +407,16 @@ def export_density(
 
 
 def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO) -> list[Path]:
-    """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``."""
+    """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``, and its
+    confidence volume ``uncertainty.npz``, when the run has one, as ``uncertainty.<format>``
+    for the volume formats (vti, nrrd, raw, vdb)."""
     run_dir = Path(run_dir)
-    return export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
+    written = export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
+    volumes = [f for f in _check_formats(formats) if f in VOLUME_FORMATS]
+    if volumes and (run_dir / UNCERTAINTY_FILE).is_file():
+        sigma = load_density(run_dir / UNCERTAINTY_FILE)
+        written += export_density(sigma, run_dir / "uncertainty", volumes, iso, sigma_names(sigma.density.shape[0]))
+    return written
 
 
 def check_exporters(formats: Iterable[str]) -> None:

@@ -38,16 +38,20 @@ TITLE_PX, BAR_PX, BAR_LABEL_PX = 14, 8, 40
 
 
 def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "",
-                   psnr: float | None = None, black: float | None = None) -> np.ndarray:
+                   psnr: float | None = None, black: float | None = None,
+                   sigma: torch.Tensor | None = None) -> np.ndarray:
     """A held-out view read without a legend: panels "rendered <view>" (with its ``psnr`` and
-    the black image's, dB, when given) | "captured" | "|error|, image units" under a title
-    strip of :data:`TITLE_PX` (two lines of it where a title is wider than its panel), the error
-    (mean over channels, in the images' units, 1 = white) in the inferno colour map with a colour
-    bar (0 at the bottom, the largest error at the top) to its right: (strip + H, 3 W + BAR_PX +
-    BAR_LABEL_PX, 3) uint8, from images (C, H, W) in [0, 1]."""
+    the black image's, dB, when given) | "captured" | "|error|, image units" (| "predicted
+    sigma" with ``sigma``, the render's confidence image (C, H, W):
+    :mod:`flamerecon.evaluate.uncertainty`) under a title strip of :data:`TITLE_PX` (two lines
+    of it where a title is wider than its panel); the error and sigma (means over channels, in
+    the images' units, 1 = white) share the inferno colour map and its colour bar (0 at the
+    bottom, the largest of them at the top) to their right: (strip + H, n W + BAR_PX +
+    BAR_LABEL_PX, 3) uint8 with n = 3 or 4, from images (C, H, W) in [0, 1]."""
     r, c = to_display(rendered), to_display(captured)
     error = (rendered.detach().float().cpu().clamp(0, 1) - captured.detach().float().cpu()).abs().mean(0)
-    top = float(error.max())
+    spread = None if sigma is None else sigma.detach().float().cpu().mean(0)
+    top = max(float(error.max()), 0.0 if spread is None else float(spread.max()))
     H, W = error.shape
     panels = [(r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
               (c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8), to_rgb8(error[None], top or 1.0)]
@@ -59,15 +63,19 @@ def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "
               ["|error|, image units" if _text_width("|error|, image units") <= W - 4 else "|error|"]]
     if scored and _text_width(titles[0][0]) > W - 4:  # a narrow panel: the scores on a second line
         titles[0] = [f"rendered {view}".strip(), scored]
+    if spread is not None:
+        panels.append(to_rgb8(spread[None], top or 1.0))
+        titles.append(["predicted sigma" if _text_width("predicted sigma") <= W - 4 else "sigma"])
+    n = len(panels)
     strip = TITLE_PX * max(len(t) for t in titles)
-    figure = np.zeros((strip + H, 3 * W + bar.shape[1], 3), np.uint8)
+    figure = np.zeros((strip + H, n * W + bar.shape[1], 3), np.uint8)
     figure[strip:] = np.concatenate([*panels, bar], axis=1)
-    for n, lines in enumerate(titles):
-        for k, title in enumerate(lines):
-            cv2.putText(figure, title, (n * W + 2, (k + 1) * TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+    for k, lines in enumerate(titles):
+        for line, title in enumerate(lines):
+            cv2.putText(figure, title, (k * W + 2, (line + 1) * TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
                         (255, 255, 255), 1, cv2.LINE_AA)
     for y, text in ((strip + 9, f"{top:.2g}"), (strip + H - 2, "0")):
-        cv2.putText(figure, text, (3 * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
+        cv2.putText(figure, text, (n * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
                     (255, 255, 255), 1, cv2.LINE_AA)
     return figure
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -20,15 +21,22 @@ from flamerecon.device import resolve_device
 from flamerecon.errors import ConfigError, RunFolderError, output_error
 from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import native_scores, score, write_renders
+from flamerecon.evaluate.uncertainty import (
+    Confidence,
+    predicted_psnr,
+    recorded_sigma,
+    save_confidence,
+)
 from flamerecon.fit.build import scene_grid, split_views
 from flamerecon.fit.checks import check_density_fits
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Reconstruction, mean_of
+from flamerecon.geometry.cameras import camera_subset
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.atomic import is_temporary, update_json_atomic, write_json_atomic
 from flamerecon.outputs.cameras_file import camera_records, cameras_from_records
-from flamerecon.outputs.export import FORMATS, load_density, save_density
-from flamerecon.outputs.figures import top_view
+from flamerecon.outputs.export import FORMATS, UNCERTAINTY_FILE, load_density, save_density
+from flamerecon.outputs.figures import heldout_figure, top_view
 from flamerecon.plain import json_value
 from flamerecon.rules import integer, list_of
 from flamerecon.run.cli import one_line
@@ -110,10 +118,35 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
     return metrics, held_imgs
 
 
-def write_scores(run_dir: Path, metrics: dict, held_imgs: torch.Tensor, scene: Scene, holdout: list[int]) -> None:
-    """renders/ (the held-out renders) and metrics.json."""
-    write_renders(run_dir, held_imgs, scene, holdout)
+def write_scores(run_dir: Path, metrics: dict, held_imgs: torch.Tensor, scene: Scene, holdout: list[int],
+                 sigma: torch.Tensor | None = None) -> None:
+    """renders/ (the held-out renders, with their confidence images ``sigma`` when given) and
+    metrics.json."""
+    write_renders(run_dir, held_imgs, scene, holdout, sigma)
     write_json_atomic(run_dir / "metrics.json", metrics)
+
+
+def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_imgs: torch.Tensor,
+                     metrics: dict, writer: RunWriter) -> torch.Tensor:
+    """uncertainty.npz (:func:`~flamerecon.evaluate.uncertainty.save_confidence`), each held-out
+    view's ``psnr_predicted`` in ``metrics``, its ``uncertainty`` record (members, scale, shift,
+    seconds) and the TensorBoard images ``uncertainty/<view>`` (render | captured | error |
+    predicted sigma); returns the held-out confidence images (V, C, H, W), in image units."""
+    scene, setup = rec.scene, rec.setup
+    clock = time.perf_counter()
+    save_confidence(run_dir / UNCERTAINTY_FILE, conf, [scene.views[i] for i in setup.train])
+    sigma = (conf.image(camera_subset(scene.cameras, setup.holdout)).cpu() if setup.holdout
+             else torch.zeros_like(held_imgs))
+    recorded = recorded_sigma(scene, held_imgs, sigma)
+    for k, v in enumerate(setup.holdout):
+        metrics["heldout"][scene.views[v]]["psnr_predicted"] = predicted_psnr(recorded[k])
+        scores = metrics["heldout"][scene.views[v]]
+        figure = heldout_figure(held_imgs[k], scene.images[v], scene.views[v], scores["psnr"], scores["psnr_black"],
+                                sigma[k])
+        writer.image(f"uncertainty/{scene.views[v]}", figure, rec.fit.result.iterations, "HWC")
+    metrics["uncertainty"] = {"members": conf.labels, "scale": conf.scale, "shift_voxels": conf.shift_voxels,
+                              "seconds": conf.seconds + time.perf_counter() - clock}
+    return sigma
 
 
 def solver_record(rec: Reconstruction, stopped: StopSolve | None) -> dict:
@@ -143,9 +176,10 @@ def solver_record(rec: Reconstruction, stopped: StopSolve | None) -> dict:
 
 
 def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, writer: RunWriter,
-                  stopped: StopSolve | None = None) -> dict:
+                  stopped: StopSolve | None = None, confidence: Confidence | None = None) -> dict:
     """density.npz, cameras.json, metrics.json, renders/ and the final TensorBoard entries of
-    ``rec``; returns the metrics."""
+    ``rec``; with its ``confidence`` also uncertainty.npz, the held-out views' predicted PSNR
+    and confidence images (see :func:`write_confidence`). Returns the metrics."""
     setup, options, scene = rec.setup, rec.options, rec.scene
     volume = rec.density
     info = solver_record(rec, stopped)
@@ -159,7 +193,8 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
                                 options.silhouette.as_dict(), per_view, calibration=rec.calibration,
                                 penalty=penalty_of(options.solver.as_dict(), rec.fit.l1))
     metrics["solver"] = info
-    write_scores(run_dir, metrics, held_imgs, scene, setup.holdout)
+    sigma = None if confidence is None else write_confidence(run_dir, confidence, rec, held_imgs, metrics, writer)
+    write_scores(run_dir, metrics, held_imgs, scene, setup.holdout, sigma)
     for name, values in (rec.calibration or {}).get("cameras", {}).items():
         writer.scalars(0, {k: v for k, v in values.items() if k != "principal_point_px"}, f"calibration/{name}")
     if rec.calibration:

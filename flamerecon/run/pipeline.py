@@ -18,9 +18,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from flamerecon.device import resolve_device
-from flamerecon.errors import SolveDiverged
+from flamerecon.errors import ConfigError, SolveDiverged
 from flamerecon.fit import reconstruct as core
 from flamerecon.fit.build import Setup, build
+from flamerecon.fit.ensemble import confidence
 from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import Photometry, mean_of
 from flamerecon.fit.refine_cameras import RefineOptions
@@ -95,6 +96,10 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     if cfg.scene.get("frames") is not None:  # consecutive frames solved jointly (time as a prior)
         from flamerecon.run.joint_frames import run_frames
 
+        if cfg.get("uncertainty", {}).get("enabled"):
+            raise ConfigError("uncertainty.enabled: the confidence is computed for one frame's reconstruction, "
+                              "not for scene.frames solved jointly; run the frames one by one, or leave it off")
+
         return logged(run_frames(cfg, run_dir, resume))
     options = options_from_config(cfg)
     core.check_solver_name(options.solver.name)
@@ -112,8 +117,13 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         if "solve" in timing:
             timing["solve"] -= hook.monitor_seconds
         timing["monitoring"] = hook.monitor_seconds
+        conf = None
+        if options.uncertainty.enabled and hook.stop is None:
+            clock = time.perf_counter()
+            conf = confidence(rec.setup, rec.options, rec.fit.result.x)
+            timing["uncertainty"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.stop)
+        metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.stop, conf)
         timing["outputs"] = time.perf_counter() - clock
     finally:
         writer.close()

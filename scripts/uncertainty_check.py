@@ -1,0 +1,152 @@
+"""Check the confidence images against held-out errors (README, "What the cameras determine").
+
+    python scripts/uncertainty_check.py --frames 60 61 ... --out FILE.json [--loo] [train.py overrides ...]
+
+Per frame (``scene.frame``; scene=scalarflow unless the overrides choose a scene), the run as
+train.py's overrides describe it, its confidence (``uncertainty.*``), and per held-out camera:
+the Spearman correlation of the predicted spread with the absolute error, per pixel whose ray
+meets the visual hull (everywhere else both are 0), beside that of the rendered intensity (the
+trivial predictor) and of an oracle that knows the error around each pixel within 2 px (a
+diagnosis: what a spread at that resolution could at best do); the coverage of the 1- and 2-sigma bands there (the trivial predictor's with
+its gain fitted to this very view); the measured and the predicted full-frame PSNR. ``--loo``
+holds out every camera in turn (leave-one-view-out) instead of the run's held-out ones. Writes
+FILE.json: ``{"frames": {"65": {"spearman", "spearman_trivial", "coverage_1sigma",
+"coverage_2sigma", "psnr", "psnr_predicted", ..., "views": {view: the same}}}, "scale_fit",
+"config"}`` (a frame's figures are the mean over its held-out views), and prints the table, the
+cost per frame (the run and the confidence), and ``scale_fit``: the ``uncertainty.scale`` that
+would make the mean predicted MSE equal the measured on these frames (their geometric mean:
+how the scale was chosen on frames that are then not reported).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+
+import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
+
+# isort: split
+
+from flamerecon.evaluate.metrics import resample_to
+from flamerecon.evaluate.scores import captured_silhouettes, silhouette_union
+from flamerecon.evaluate.uncertainty import check_view, coverage, recorded_sigma, spearman
+from flamerecon.fit.ensemble import confidence
+from flamerecon.fit.reconstruct import reconstruct
+from flamerecon.geometry.cameras import camera_subset
+from flamerecon.operators.projector import render_image
+from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.run.cli import at_least, compose_train, output_file, run_script, script_parser
+from flamerecon.run.pipeline import options_from_config
+from flamerecon.scenes import load_scene
+
+#: the columns of the table (and the figures averaged into a frame's entry)
+COLUMNS = ("spearman", "spearman_trivial", "spearman_oracle_2px", "coverage_1sigma", "coverage_2sigma",
+           "coverage_2sigma_trivial", "psnr", "psnr_predicted")
+
+
+def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict], dict[str, float]]:
+    """Reconstruct ``scene`` holding out ``views`` (None: the options' held-out ones) and check
+    its confidence on each held-out view: ({view: figures}, {"run": s, "confidence": s})."""
+    if views is not None:
+        options = options.replace(holdout=tuple(scene.views[v] for v in views))
+    clock = time.perf_counter()
+    rec = reconstruct(scene, options)
+    run_seconds = time.perf_counter() - clock
+    clock = time.perf_counter()
+    conf = confidence(rec.setup, rec.options, rec.fit.result.x)
+    cams = camera_subset(rec.scene.cameras, rec.setup.holdout)
+    sigma = conf.image(cams).cpu()
+    domain = conf.footprint(cams).cpu()
+    confidence_seconds = time.perf_counter() - clock
+    rendered = render_image(rec.density, rec.grid, cams, rec.setup.step).cpu()
+    captured = captured_silhouettes(rec.scene, rec.setup.holdout, options.silhouette.as_dict())
+    union = silhouette_union(rendered, captured, options.silhouette.as_dict())
+    volume = check_volume(rec, conf)
+    out = {}
+    for k, v in enumerate(rec.setup.holdout):
+        recorded = rec.scene.to_recorded(rendered[k])
+        out[scene.views[v]] = {**check_view(recorded, rec.scene.recorded_view(v),
+                                            recorded_sigma(rec.scene, rendered[k], sigma[k]), domain[k], union[k]),
+                               **volume}
+    return out, {"run": run_seconds, "confidence": confidence_seconds, "members": conf.seconds}
+
+
+def check_volume(rec, conf) -> dict[str, float]:
+    """With a scene whose truth lies on the run's box (the synthetic flame): how the confidence
+    volume predicts the density's error there, over the hull voxels (every channel): the rank
+    correlation with |density - truth| (``volume_spearman``; ``volume_spearman_trivial``: the
+    density's own), the 1- and 2-sigma coverage; {} without a truth."""
+    scene, grid = rec.scene, rec.grid
+    if scene.truth is None or scene.truth_grid is None or (scene.truth_grid.bbox_min, scene.truth_grid.bbox_max) != (
+            grid.bbox_min, grid.bbox_max):
+        return {}
+    truth = resample_to(scene.truth, grid.shape)
+    density, sigma = rec.density.cpu(), conf.volume().cpu()
+    inside = rec.setup.hull.cpu().expand_as(density)
+    error = (density - truth).abs()[inside]
+    return {"volume_spearman": spearman(sigma[inside], error), "volume_spearman_trivial": spearman(density[inside], error),
+            "volume_coverage_1sigma": coverage(error, sigma[inside], 1.0),
+            "volume_coverage_2sigma": coverage(error, sigma[inside], 2.0)}
+
+
+def mean_figures(views: dict[str, dict]) -> dict[str, float]:
+    """The mean of every figure over the views."""
+    keys = next(iter(views.values())).keys()
+    return {k: sum(v[k] for v in views.values()) / len(views) for k in keys}
+
+
+def line(frame, view: str, r: dict, cost: str = "") -> str:
+    return (f"{frame!s:>5} {view:<9} " + " ".join(f"{r[k]:8.3f}" if "psnr" not in k else f"{r[k]:8.2f}"
+                                                  for k in COLUMNS) + f"  {cost}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = script_parser(__doc__, __file__)
+    parser.add_argument("overrides", nargs="*", help="train.py overrides (default: scene=scalarflow)")
+    parser.add_argument("--frames", type=at_least(0), nargs="+", required=True, help="scene.frame values")
+    parser.add_argument("--out", type=output_file, required=True, help="the JSON file to write")
+    parser.add_argument("--loo", action="store_true", help="hold out every camera in turn")
+    args = parser.parse_args(argv)
+
+    def run() -> None:
+        record = {"frames": {}, "config": list(args.overrides), "loo": bool(args.loo)}
+        print(f"{'frame':>5} {'view':<9} " + " ".join(f"{k.replace('coverage_', 'cov').replace('spearman', 'rho')[:8]:>8}"
+                                                   for k in COLUMNS) + "  seconds (run + confidence)", flush=True)
+        fits = []
+        for frame in args.frames:
+            cfg = compose_train([*args.overrides, f"scene.frame={frame}"])
+            options = options_from_config(cfg)
+            scene = load_scene(cfg.scene)
+            splits = [[v] for v in range(scene.num_views)] if args.loo else [None]
+            views, cost = {}, {"run": 0.0, "confidence": 0.0, "members": 0.0}
+            for split in splits:
+                found, seconds = check_split(scene, options, split)
+                views.update(found)
+                cost = {k: cost[k] + seconds[k] for k in cost}
+                for name, r in found.items():
+                    fits.append(options.uncertainty.scale * 10 ** ((r["psnr_predicted"] - r["psnr"]) / 20))
+                    print(line(frame, name, r, f"{seconds['run']:.1f} + {seconds['confidence']:.1f}"), flush=True)
+            entry = {**mean_figures(views), "views": views, "seconds": cost}
+            record["frames"][str(frame)] = entry
+            if len(views) > 1:
+                print(line(frame, "mean", entry), flush=True)
+            if "volume_spearman" in entry:
+                print(f"      volume: rank correlation with |density - truth| {entry['volume_spearman']:.3f} (the "
+                      f"density's own {entry['volume_spearman_trivial']:.3f}), coverage 1/2 sigma "
+                      f"{entry['volume_coverage_1sigma']:.3f}/{entry['volume_coverage_2sigma']:.3f}", flush=True)
+            print(f"      cost of frame {frame}: run {cost['run']:.1f} s, confidence {cost['confidence']:.1f} s "
+                  f"({cost['confidence'] / cost['run']:.2f} x the run; members {cost['members']:.1f} s); "
+                  f"load average {os.getloadavg()[0]:.2f} (a shared machine's times vary)", flush=True)
+        record["scale_fit"] = math.exp(sum(math.log(f) for f in fits) / len(fits))
+        print(f"uncertainty.scale that makes the predicted PSNR exact on these frames (geometric mean over "
+              f"{len(fits)} views): {record['scale_fit']:.3f} (used: {options.uncertainty.scale:g})")
+        write_json_atomic(args.out, record)
+        print(f"written: {args.out}")
+
+    return run_script(run, args.debug)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
