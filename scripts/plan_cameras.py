@@ -25,6 +25,11 @@ correlation over the cameras per frame.
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first: a stop signal from here on ends in one line, exit status 130
+
 import math
 import sys
 from pathlib import Path

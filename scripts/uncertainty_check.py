@@ -20,6 +20,11 @@ how the scale was chosen on frames that are then not reported).
 
 from __future__ import annotations
 
+from flamerecon.interrupt import install
+
+if __name__ == "__main__":
+    install()  # first: a stop signal from here on ends in one line, exit status 130
+
 import math
 import os
 import sys

@@ -61,8 +61,8 @@ TOLD = {  # case: (patch, log level, message)
     "an ordinary run": (nothing, logging.INFO, (r"^estimate: \d.* rays, \d.* voxels, .* ray samples per pass: "
                                                r"about .* of memory on cpu$")),
     "a long one": (lambda mp: mp.setattr(workload, "LONG_RUN_SAMPLES", 10.0), logging.WARNING,
-                   r"^a large frame: 5 views of 48x36 px, .* ray samples per pass: the camera fit and each solve take "
-                   r"minutes here; scene\.downscale=2 works on 1/4 of the pixels; a ladder \(ladder\.rungs="),
+                   (r"^a large frame: 5 views of 48x36 px, .* ray samples per pass: the camera fit and each solve take "
+                    r"minutes here; scene\.downscale=2 works on 1/4 of the pixels; a ladder \(ladder\.rungs=")),
 }
 
 

@@ -16,6 +16,7 @@ import yaml
 from flamerecon.outputs.atomic import atomic_write_text
 
 SUMMARY_CSV = "sweep_summary.csv"
+#: the marker of a failed run or job (run/runner.py writes it; a sweep's table reads it)
 FAILED_FILE = "FAILED"
 #: the columns after the overrides: (name, metrics.json's value, format)
 COLUMNS = (("heldout PSNR dB", ("heldout", "psnr"), "{:.2f}"), ("black dB", ("heldout", "psnr_black"), "{:.2f}"),

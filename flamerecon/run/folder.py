@@ -37,6 +37,7 @@ from flamerecon.outputs.atomic import is_temporary, update_json_atomic, write_js
 from flamerecon.outputs.cameras_file import camera_records, cameras_from_records
 from flamerecon.outputs.export import FORMATS, UNCERTAINTY_FILE, load_density, save_density
 from flamerecon.outputs.figures import heldout_figure, top_view
+from flamerecon.outputs.sweep import FAILED_FILE
 from flamerecon.plain import json_value
 from flamerecon.rules import integer, list_of
 from flamerecon.run.cli import one_line
@@ -47,8 +48,6 @@ from flamerecon.run.tensorboard import RunWriter
 from flamerecon.scenes import Scene, load_scene
 
 CONFIG_FILE = Path(".hydra") / "config.yaml"
-#: the marker of a failed run (run/runner.py writes it)
-FAILED_FILE = "FAILED"
 RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "overwrite", "log", "checkpoint", "export", "hydra")
 #: what a run writes into its folder (besides TensorBoard's ``events.out.tfevents.*`` and the
 #: atomic writers' stale temporaries): what ``overwrite=true`` removes before a new run there

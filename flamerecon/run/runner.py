@@ -43,7 +43,6 @@ from flamerecon.outputs.atomic import atomic_write_text
 from flamerecon.outputs.sweep import FAILED_FILE, sweep_table, write_sweep_csv
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
 from flamerecon.run.cli import config_problem, one_line
-from flamerecon.run.folder import FAILED_FILE
 
 #: what Hydra (and the lock) put into a run or sweep folder before the run does any work
 HYDRA_ENTRIES = frozenset({".hydra", "train.log", "multirun.yaml", ".lock"})
