@@ -441,7 +441,7 @@ class MatrixFreeOperator:
     ``forward`` (M, C) -> (N, C) is differentiable; ``adjoint`` is its vector-Jacobian product,
     taken block by block of ray samples (about :data:`CHUNK_SAMPLES` each), so both products
     hold one block's samples at a time whatever the number of rays. Every product marches
-    every ray again: about 100x the time of the assembled operator's (docs/results.md), which
+    every ray again: 150-300x the time of the assembled operator's (docs/results.md), which
     :func:`~flamerecon.operators.norm_sq` and the solvers read from :attr:`costly_products`.
     """
 
