@@ -203,7 +203,9 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
 def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> dict[str, np.ndarray]:
     """The pictures of the first frame of ``report`` (H, W, 3) uint8 by name: its velocity's
     slices and streamlines (world units per second at ``frame_rate``, else cells per frame), and
-    each held-out view of frame first + the longest horizon, captured beside every prediction."""
+    each held-out view of frame first + the longest horizon, captured beside every prediction
+    (one brightness scale, the capture's peak white; each prediction titled with its PSNR)."""
+    from flamerecon.evaluate.metrics import psnr
     from flamerecon.fit.flow import cells_to_world
     from flamerecon.outputs.figures import montage, to_rgb8
     from flamerecon.outputs.flow_figures import (
@@ -225,10 +227,11 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> d
     for v in target.holdout:
         captured = target.scene.images[v]
         top = float(captured.max().clamp_min(1e-6))
-        tiles, labels = [to_rgb8(captured, top)], [f"captured {target.scene.views[v]}, frame {t + k}"]
+        tiles, labels = [to_rgb8(captured, top)], [f"captured {target.scene.views[v]}, frame {t + k} (peak = white)"]
         for method, density in found["predictions"].items():
             image = render_scene_views(density.float(), target.grid, target.scene, [v], target.step)[0]
             tiles.append(to_rgb8(image, top))
-            labels.append(method if method == "reconstruction" else f"{method}, from frame {t}")
+            score = psnr(target.scene.to_recorded(image), target.scene.recorded_view(v))
+            labels.append((method if method == "reconstruction" else f"{method}, from frame {t}") + f": {score:.2f} dB")
         out[f"predictions_{t:04d}_k{k}_{target.scene.views[v]}"] = montage(tiles, len(tiles), labels)
     return out
