@@ -45,6 +45,20 @@ def test_updates_are_throttled_but_the_last_is_said(lines, monkeypatch):
     assert len(said) == 10 and said[-1].startswith("reference solve: iteration 100/100;")
 
 
+@pytest.mark.parametrize(("times", "expected"), [
+    ([0.0, 1.0, 2.0, 3.0], []),  # quick: not a word, not even at the end
+    ([0.0, 2.0, 6.0, 8.0, 17.0], ["assembling: ray 20/40; 6 s elapsed, about 6 s left",
+                                  "assembling: ray 40/40; 17 s elapsed, done"]),
+])
+def test_a_wait_that_may_be_quick_speaks_only_once_it_is_long(lines, monkeypatch, times, expected):
+    clock = iter(times)
+    monkeypatch.setattr("flamerecon.progress.time.perf_counter", lambda: next(clock))
+    p = Progress("assembling", 40, "ray", every=10.0, after=5.0)
+    for done in (10, 20, 30, 40)[:len(times) - 1]:
+        p.update(done)
+    assert lines() == expected
+
+
 def test_silenced_by_the_environment_variable(lines, monkeypatch):
     monkeypatch.setenv(ENV, "0")
     Progress("camera fit", 2).step()
