@@ -36,7 +36,13 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 from flamerecon.evaluate.metrics import resample_to
 from flamerecon.evaluate.scores import captured_silhouettes, silhouette_union
-from flamerecon.evaluate.uncertainty import check_view, coverage, recorded_sigma, spearman
+from flamerecon.evaluate.uncertainty import (
+    check_view,
+    coverage,
+    predicted_psnr,
+    recorded_sigma,
+    spearman,
+)
 from flamerecon.fit.ensemble import confidence
 from flamerecon.fit.reconstruct import reconstruct
 from flamerecon.geometry.cameras import camera_subset
@@ -48,7 +54,7 @@ from flamerecon.scenes import load_scene
 
 #: the columns of the table (and the figures averaged into a frame's entry)
 COLUMNS = ("spearman", "spearman_trivial", "spearman_oracle_2px", "coverage_1sigma", "coverage_2sigma",
-           "coverage_2sigma_trivial", "psnr", "psnr_predicted")
+           "coverage_2sigma_trivial", "psnr", "psnr_predicted_density", "psnr_predicted")
 
 
 def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict], dict[str, float]]:
@@ -60,11 +66,13 @@ def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict
     rec = reconstruct(scene, options)
     run_seconds = time.perf_counter() - clock
     clock = time.perf_counter()
-    conf = confidence(rec.setup, rec.options, rec.fit.result.x)
+    conf = confidence(rec.setup, rec.options, rec.fit.result.x, calibration=rec.calibration)
     cams = camera_subset(rec.scene.cameras, rec.setup.holdout)
-    sigma = conf.image(cams).cpu()
+    names = [scene.views[v] for v in rec.setup.holdout]
+    sigma = conf.image(cams, names).cpu()
     domain = conf.footprint(cams).cpu()
     confidence_seconds = time.perf_counter() - clock
+    density_sigma = conf.image(cams).cpu()  # the density's part alone: the prediction before the cameras' poses
     rendered = render_image(rec.density, rec.grid, cams, rec.setup.step).cpu()
     captured = captured_silhouettes(rec.scene, rec.setup.holdout, options.silhouette.as_dict())
     union = silhouette_union(rendered, captured, options.silhouette.as_dict())
@@ -72,10 +80,23 @@ def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict
     out = {}
     for k, v in enumerate(rec.setup.holdout):
         recorded = rec.scene.to_recorded(rendered[k])
+        density_only = recorded_sigma(rec.scene, rendered[k], density_sigma[k])
         out[scene.views[v]] = {**check_view(recorded, rec.scene.recorded_view(v),
                                             recorded_sigma(rec.scene, rendered[k], sigma[k]), domain[k], union[k]),
-                               **volume}
+                               "psnr_predicted_density": predicted_psnr(density_only),
+                               "density_variance": float(density_only.double().pow(2).mean()),
+                               **pose_figures(conf, scene.views[v]), **volume}
     return out, {"run": run_seconds, "confidence": confidence_seconds, "members": conf.seconds}
+
+
+def pose_figures(conf, view: str) -> dict[str, float]:
+    """The held-out camera's pose uncertainty as the confidence has it: one-sigma degrees,
+    pixels at the box, the share its images confirmed; {} when it has none."""
+    if conf.poses is None or view not in conf.poses.views:
+        return {}
+    r = conf.poses.records()[view]
+    return {"pose_sigma_deg": r["pose_sigma_deg"], "pose_sigma_box_px": r["pose_sigma_box_px"],
+            "pose_share": r["pose_share"]}
 
 
 def check_volume(rec, conf) -> dict[str, float]:
@@ -96,9 +117,17 @@ def check_volume(rec, conf) -> dict[str, float]:
             "volume_coverage_2sigma": coverage(error, sigma[inside], 2.0)}
 
 
+def exact_scale(r: dict, scale: float) -> float:
+    """The ``uncertainty.scale`` that would make view ``r``'s predicted PSNR its measured one,
+    its cameras' pose part unchanged; 0 where that part alone predicts more error than measured."""
+    measured = 10 ** (-r["psnr"] / 10)
+    pose = 10 ** (-r["psnr_predicted"] / 10) - r["density_variance"]
+    return scale * math.sqrt(max(measured - pose, 0.0) / r["density_variance"]) if r["density_variance"] > 0 else 0.0
+
+
 def mean_figures(views: dict[str, dict]) -> dict[str, float]:
-    """The mean of every figure over the views."""
-    keys = next(iter(views.values())).keys()
+    """The mean of every figure that each of the views has."""
+    keys = set.intersection(*(set(v) for v in views.values()))
     return {k: sum(v[k] for v in views.values()) / len(views) for k in keys}
 
 
@@ -131,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
                 views.update(found)
                 cost = {k: cost[k] + seconds[k] for k in cost}
                 for name, r in found.items():
-                    fits.append(options.uncertainty.scale * 10 ** ((r["psnr_predicted"] - r["psnr"]) / 20))
+                    fits.append(exact_scale(r, options.uncertainty.scale))
                     print(line(frame, name, r, f"{seconds['run']:.1f} + {seconds['confidence']:.1f}"), flush=True)
             entry = {**mean_figures(views), "views": views, "seconds": cost}
             record["frames"][str(frame)] = entry
@@ -144,9 +173,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"      cost of frame {frame}: run {cost['run']:.1f} s, confidence {cost['confidence']:.1f} s "
                   f"({cost['confidence'] / cost['run']:.2f} x the run; members {cost['members']:.1f} s); "
                   f"load average {os.getloadavg()[0]:.2f} (a shared machine's times vary)", flush=True)
-        record["scale_fit"] = math.exp(sum(math.log(f) for f in fits) / len(fits))
+        usable = [f for f in fits if f > 0]
+        record["scale_fit"] = math.exp(sum(math.log(f) for f in usable) / len(usable)) if usable else math.nan
         print(f"uncertainty.scale that makes the predicted PSNR exact on these frames (geometric mean over "
-              f"{len(fits)} views): {record['scale_fit']:.3f} (used: {options.uncertainty.scale:g})")
+              f"{len(usable)} of {len(fits)} views; the cameras' pose part kept as it is): "
+              f"{record['scale_fit']:.3f} (used: {options.uncertainty.scale:g})")
         write_json_atomic(args.out, record)
         print(f"written: {args.out}")
 

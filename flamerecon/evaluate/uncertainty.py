@@ -35,6 +35,7 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import fields, tensor, value, wrong_value
+from flamerecon.evaluate.pose_spread import PoseSpread
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import render_image
@@ -99,7 +100,9 @@ class Confidence:
     """The confidence of a density ``x`` (M, C) on the hull voxels ``voxel_index`` (M,) of
     ``grid`` (``hull``: (nz, ny, nx) bool), from ensemble ``members`` (K, M, C) whose kinds
     (``cameras``, ``weights``) are ``groups``, ``shift_voxels`` and ``scale`` (see the module's
-    docstring); ``step``: the renders' ray step in voxels; ``seconds``: what the members cost."""
+    docstring); ``step``: the renders' ray step in voxels; ``seconds``: what the members cost;
+    ``poses``: the scene's cameras' pose uncertainty (:mod:`flamerecon.evaluate.pose_spread`),
+    added, unscaled, to the images of the cameras it names."""
 
     grid: VoxelGrid
     voxel_index: torch.Tensor
@@ -112,6 +115,7 @@ class Confidence:
     step: float = 0.5
     seconds: float = 0.0
     labels: list[str] = field(default_factory=list)
+    poses: PoseSpread | None = None
 
     def __post_init__(self) -> None:
         fields(self)
@@ -162,14 +166,19 @@ class Confidence:
         return {kind: mean_square(render_image(d, self.grid, cams, self.step) for d in devs)
                 for kind, devs in self.deviations()}
 
-    def image(self, cams: PinholeCamera) -> torch.Tensor:
+    def image(self, cams: PinholeCamera, views: list[str | None] | None = None) -> torch.Tensor:
         """The confidence images (B, C, H, W) of ``cams``: per pixel the predicted one-sigma
-        spread of the rendered value (image units, before a camera's photometry)."""
+        spread of the rendered value (image units, before a camera's photometry). ``views``
+        (B): the scene's name of each camera (None: a novel one), whose pose uncertainty
+        (:attr:`poses`) adds its variance; None: no camera's is added."""
         parts = self.image_parts(cams)
-        if not parts:
-            B, H, W = cams.batch_size, int(cams.height[0]), int(cams.width[0])
-            return self.x.new_zeros(B, self.x.shape[1], H, W)
-        return float(self.scale) * sum(parts.values()).sqrt()
+        B, H, W = cams.batch_size, int(cams.height[0]), int(cams.width[0])
+        variance = (float(self.scale) ** 2 * sum(parts.values()) if parts
+                    else self.x.new_zeros(B, self.x.shape[1], H, W))
+        if self.poses is not None and views is not None:
+            variance = variance + self.poses.variance(self.density, self.grid, cameras_to(cams, self.x.device),
+                                                      list(views), self.step)
+        return variance.sqrt()
 
     def footprint(self, cams: PinholeCamera) -> torch.Tensor:
         """(B, H, W) bool: the pixels of ``cams`` whose ray meets the visual hull, where the
@@ -295,13 +304,24 @@ def save_confidence(path: str | os.PathLike, conf: Confidence, views: list[str])
     (as in density.npz, so every export reads it), ``bbox_min``, ``bbox_max``, ``views`` (those
     fitted), and what :func:`load_confidence` needs to render confidence images again: ``x``
     (M, C) and ``members`` (K, M, C) on the hull voxels ``voxel_index`` (M,), ``labels`` (K,),
-    ``shift_voxels``, ``scale``, ``step``, ``seconds``."""
+    ``shift_voxels``, ``scale``, ``step``, ``seconds``, and with :attr:`Confidence.poses` its
+    fields as ``pose_<field>``."""
     grid = conf.grid
+    poses = {} if conf.poses is None else {f"pose_{k}": pose_array(getattr(conf.poses, k)) for k in POSE_FIELDS}
     return save_density(path, conf.volume().cpu(), grid.bbox_min, grid.bbox_max, views,
                         x=conf.x.cpu(), members=conf.members.cpu(), voxel_index=conf.voxel_index.cpu(),
                         labels=np.array(conf.labels or conf.groups, dtype=np.str_).reshape(-1),
                         resolution=np.array(grid.resolution), shift_voxels=float(conf.shift_voxels),
-                        scale=float(conf.scale), step=float(conf.step), seconds=float(conf.seconds))
+                        scale=float(conf.scale), step=float(conf.step), seconds=float(conf.seconds), **poses)
+
+
+#: the fields of a :class:`~flamerecon.evaluate.pose_spread.PoseSpread` that uncertainty.npz keeps
+POSE_FIELDS = ("views", "K", "world_to_camera", "share", "rotation_deg", "box_px", "sources")
+
+
+def pose_array(value) -> np.ndarray:
+    """A PoseSpread field as a numpy array (names as strings)."""
+    return value.cpu().numpy() if isinstance(value, torch.Tensor) else np.array(value, dtype=np.str_).reshape(-1)
 
 
 def load_confidence(path: str | os.PathLike, device: torch.device | str = "cpu") -> Confidence:
@@ -318,7 +338,12 @@ def load_confidence(path: str | os.PathLike, device: torch.device | str = "cpu")
         hull = torch.zeros(grid.num_voxels, dtype=torch.bool, device=device)
         hull[index] = True
         labels = [str(s) for s in f["labels"]]
+        poses = None
+        if "pose_views" in f.files:
+            read = {k: f[f"pose_{k}"] for k in POSE_FIELDS}
+            poses = PoseSpread(**{k: [str(s) for s in v] if v.dtype.kind == "U" else torch.from_numpy(v)
+                                  for k, v in read.items()})
         return Confidence(grid, index, hull.reshape(grid.shape), torch.from_numpy(f["x"]).to(device),
                           torch.from_numpy(f["members"]).to(device), [s.split(":", 1)[0] for s in labels],
                           float(f["shift_voxels"]), float(f["scale"]), float(f["step"]),
-                          float(f["seconds"]) if "seconds" in f.files else 0.0, labels)
+                          float(f["seconds"]) if "seconds" in f.files else 0.0, labels, poses)

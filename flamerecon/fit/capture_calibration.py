@@ -31,8 +31,10 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon import solvers
 from flamerecon.errors import ConfigError
-from flamerecon.fit import build, debias, refine_cameras, weight_selection
+from flamerecon.evaluate import pose_spread
+from flamerecon.fit import build, debias, pose_uncertainty, refine_cameras, weight_selection
 from flamerecon.fit.options import ReconstructionOptions
+from flamerecon.fit.pose_uncertainty import PoseOffset, capture_offsets, spread
 from flamerecon.fit.refine_cameras import CalibrationFrame, refine, with_cameras
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
@@ -64,6 +66,7 @@ class CaptureCalibration:
     source: str
     file: Path | None
     selection: dict | None = None  # select.auto's record of the capture's weights (chosen on the frames)
+    offsets: dict[str, PoseOffset] | None = None  # each camera's pose offset (fit/pose_uncertainty.py), by name
 
 
 def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
@@ -78,6 +81,8 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
     fitted cameras (None: none), kept in the file for every later frame."""
     frames = [load_frame(scene, t) for t in options.calibration.frames]  # refuses a scene without config
     images = {f"frame{t}": f.images[train] for t, f in zip(options.calibration.frames, frames)}
+    others = [v for v in range(scene.num_views) if v not in train]  # their images measure their pose offsets
+    images.update({f"frame{t}-others": f.images[others] for t, f in zip(options.calibration.frames, frames)})
     key = entry_key("calibration", calibration_key(scene, train, grid, options, device, images),
                     [*fitting_code(), sys.modules[frame_of.__module__]])
     folder = Path(options.calibration.folder) if options.calibration.folder else cache_home() / "calibration"
@@ -85,11 +90,15 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
     stored = read_calibration(path, key)
     if stored is not None:
         return CaptureCalibration(file_cameras(path, scene, train), list(stored["history"]), "read", path,
-                                  stored.get("selection"))
-    found = refine(cameras_to(scene.cameras, device), train, [frame_of(f) for f in frames], grid,
-                   options.calibration, float(options.projector.step))
+                                  stored.get("selection"), file_offsets(path, scene.views))
+    fitting = [frame_of(f) for f in frames]
+    found = refine(cameras_to(scene.cameras, device), train, fitting, grid, options.calibration,
+                   float(options.projector.step))
     selection = None if choose is None else choose(found.cameras, frames)
     records = camera_records(scene.views, cameras_to(found.cameras, "cpu"), train, calibrated=scene.cameras)
+    offsets = capture_offsets(fitting, found.cameras, train, grid, options.calibration, float(options.projector.step),
+                              options.calibration.frames)
+    add_pose_records(records, scene, cameras_to(found.cameras, "cpu"), offsets, grid)
     record = {"key": key, "frames": list(options.calibration.frames), "refine": options.calibration.refine,
               "history": found.history, "selection": selection}
     try:
@@ -100,7 +109,7 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
                     "calibration.folder to a writable folder", path, err)
     cameras = cameras_from_records(records, scene.views, scene.cameras.height, scene.cameras.width)
     return CaptureCalibration(with_cameras(scene.cameras, train, camera_subset(cameras, train)), found.history,
-                              "fitted", path, selection)
+                              "fitted", path, selection, file_offsets(path, scene.views, records))
 
 
 def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
@@ -145,6 +154,29 @@ def file_cameras(path: str | Path, scene: Scene, views: list[int]) -> PinholeCam
     return with_cameras(scene.cameras, views, camera_subset(read, views))
 
 
+def add_pose_records(records: list[dict], scene: Scene, cameras: PinholeCamera, offsets: dict[int, PoseOffset],
+                     grid: VoxelGrid) -> None:
+    """Each camera's pose uncertainty into its cameras.json record: ``pose_offset`` (the
+    :class:`~flamerecon.fit.pose_uncertainty.PoseOffset`), ``pose_sigma_deg``,
+    ``pose_sigma_box_px``, ``pose_share`` and ``pose_source``
+    (:meth:`~flamerecon.evaluate.pose_spread.PoseSpread.records`)."""
+    named = {scene.views[v]: found for v, found in offsets.items()}
+    summary = spread(cameras, list(scene.views), named, grid).records()
+    for record in records:
+        if record["name"] in named:
+            record.update(pose_offset=named[record["name"]].record(), **summary[record["name"]])
+
+
+def file_offsets(path: str | Path, views: list[str], records: list[dict] | None = None) -> dict[str, PoseOffset] | None:
+    """The pose offsets of the cameras ``views`` that the cameras.json ``path`` (or its
+    ``records``, already read) holds, by name; None when it holds none (a file written before
+    pose offsets were measured, or a run's)."""
+    records = read_camera_file(path)["cameras"] if records is None else records
+    found = {r["name"]: PoseOffset.from_record(r["pose_offset"]) for r in records
+             if isinstance(r, dict) and r.get("name") in views and isinstance(r.get("pose_offset"), dict)}
+    return found or None
+
+
 def capture_name(scene: Scene) -> str:
     """The folder name of a capture's calibration files: the loader's name and the data
     folder's (``scalarflow-scalarflow_real``), letters, digits, ``-``, ``_``, ``.`` only."""
@@ -155,6 +187,6 @@ def capture_name(scene: Scene) -> str:
 
 def fitting_code() -> list:
     """The modules whose code shapes the cameras fitted: the fit, the renderer, the density
-    solves (set-up, weights, debiasing, every solver) and the cameras file."""
+    solves (set-up, weights, debiasing, every solver), the cameras' pose offsets and the cameras file."""
     found = [importlib.import_module(f"{solvers.__name__}.{m.name}") for m in pkgutil.iter_modules(solvers.__path__)]
-    return [refine_cameras, projector, build, debias, weight_selection, cameras_file, *found]
+    return [refine_cameras, pose_uncertainty, pose_spread, projector, build, debias, weight_selection, cameras_file, *found]

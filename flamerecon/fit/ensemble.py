@@ -28,6 +28,7 @@ import torch
 from flamerecon.arguments import fields
 from flamerecon.errors import ConfigError, SolveDiverged
 from flamerecon.evaluate.uncertainty import Confidence
+from flamerecon.fit.pose_uncertainty import offsets_of, spread
 from flamerecon.fit.reconstruct import fit
 from flamerecon.fit.uncertainty_options import UncertaintyOptions
 from flamerecon.fit.weight_selection import row_subset
@@ -111,12 +112,18 @@ def solve_ensemble(setup, options, x: torch.Tensor, uncertainty: UncertaintyOpti
     return Ensemble(stacked, [label for label, _, _ in plans], time.perf_counter() - started)
 
 
-def confidence(setup, options, x: torch.Tensor, uncertainty: UncertaintyOptions | None = None) -> Confidence:
+def confidence(setup, options, x: torch.Tensor, uncertainty: UncertaintyOptions | None = None,
+               calibration: dict | None = None) -> Confidence:
     """The :class:`~flamerecon.evaluate.uncertainty.Confidence` of the reconstruction ``x``
     (M, C) found on ``setup`` with ``options``: the ensemble of ``uncertainty`` (default:
-    ``options.uncertainty``) solved (:func:`solve_ensemble`), its shift and scale."""
+    ``options.uncertainty``) solved (:func:`solve_ensemble`), its shift and scale, and the
+    cameras' pose uncertainty that the reconstruction's ``calibration`` record holds
+    (:func:`~flamerecon.fit.pose_uncertainty.offsets_of`; none without)."""
     uncertainty = uncertainty or options.uncertainty
     found = solve_ensemble(setup, options, x, uncertainty)
+    started = time.perf_counter()
+    offsets = offsets_of(calibration)
+    poses = None if not offsets else spread(setup.scene.cameras, list(setup.scene.views), offsets, setup.grid)
     return Confidence(setup.grid, setup.voxel_index, setup.hull, x, found.members, found.groups(),
-                      float(uncertainty.shift_voxels), float(uncertainty.scale), setup.step, found.seconds,
-                      found.labels)
+                      float(uncertainty.shift_voxels), float(uncertainty.scale), setup.step,
+                      found.seconds + time.perf_counter() - started, found.labels, poses)

@@ -35,7 +35,12 @@ from flamerecon.fit.build import (
     scene_masks,
     split_views,
 )
-from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
+from flamerecon.fit.capture_calibration import (
+    CaptureCalibration,
+    capture_refinement,
+    file_cameras,
+    file_offsets,
+)
 from flamerecon.fit.checks import check_grid_memory, density_fault, memory_budget
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import LadderOptions, Level, ladder_rungs, plan_levels
@@ -523,7 +528,7 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         refined_views = list(range(len(scene.views)))
     if refining.file:  # a rig's file gives every camera, the held-out ones too
         found = CaptureCalibration(file_cameras(refining.file, scene, refined_views), [], "read",
-                                   Path(refining.file))
+                                   Path(refining.file), offsets=file_offsets(refining.file, scene.views))
     elif refining.frames:
         found = capture_refinement(scene, refined_views, grid, options, device, frame_of, capture_choice)
     else:
@@ -544,6 +549,8 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     }
     if found.selection:
         record["selection"] = found.selection
+    if found.offsets:  # each camera's pose offset, measured with the fit (fit/pose_uncertainty.py)
+        record["poses"] = {name: offset.record() for name, offset in found.offsets.items()}
     if initial is not None:
         before, _ = score(scene, initial, grid, train, holdout, step, options.silhouette.as_dict())
         record.update(train_psnr_before=mean_of(before["train"], "psnr"),
