@@ -163,24 +163,30 @@ def confidence(result: Reconstruction | Run, options: UncertaintyOptions | None 
             run_options = run_options.replace(solver=run_options.solver.with_values(**chosen))
         setup = build(result.scene, run_options, result.density.device)
         x = hull_values(result.density, setup.grid, setup.voxel_index).to(setup.pixels)
-        return solve_confidence(setup, run_options, x, options)
-    return solve_confidence(result.setup, result.options, result.fit.result.x, options)
+        return solve_confidence(setup, run_options, x, options, result.calibration)
+    return solve_confidence(result.setup, result.options, result.fit.result.x, options, result.calibration)
 
 
-def uncertainty(result: Reconstruction | Run | Confidence, cameras: PinholeCamera) -> torch.Tensor:
+def uncertainty(result: Reconstruction | Run | Confidence, cameras: PinholeCamera,
+                views: list[str | None] | None = None) -> torch.Tensor:
     """The confidence images (B, C, H, W) of ``cameras`` (B of them, one size; held-out,
     training or novel: :func:`flamerecon.look_at_camera`, :func:`flamerecon.orbit_cameras`):
     per pixel the predicted one-sigma spread of the rendered value of ``result``'s density, in
-    image units. A Reconstruction or Run has its :func:`confidence` solved first (keep that to
-    render more cameras without solving again)."""
+    image units. ``views``: each camera's name in the scene (None: a novel camera), whose pose
+    uncertainty the capture's calibration measured adds to its image. A Reconstruction or Run
+    has its :func:`confidence` solved first (keep that to render more cameras without solving
+    again)."""
     instance("uncertainty.result", result, (Reconstruction, Run, Confidence),
              "a Reconstruction, a Run or a Confidence (fr.confidence)")
     instance("uncertainty.cameras", cameras, PinholeCamera, "a kornia PinholeCamera batch")
+    if views is not None and (not isinstance(views, (list, tuple)) or len(views) != cameras.batch_size
+                              or not all(v is None or isinstance(v, str) for v in views)):
+        raise wrong_value("uncertainty.views", views, f"a list of {cameras.batch_size} camera names (or None)")
     sizes = {(int(h), int(w)) for h, w in zip(cameras.height.tolist(), cameras.width.tolist())}
     if len(sizes) != 1:
         raise wrong_value("uncertainty.cameras", sorted(sizes), "a batch of at least one camera, all of one image size")
     found = result if isinstance(result, Confidence) else confidence(result)
-    return found.image(cameras)
+    return found.image(cameras, None if views is None else list(views))
 
 
 def make_solver(name: str, **options) -> Solver:

@@ -24,6 +24,7 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 
 from flamerecon.evaluate.capture_check import check_capture, check_figure
+from flamerecon.fit.pose_uncertainty import pose_report
 from flamerecon.outputs.figures import write_png
 from flamerecon.resources import config_dir
 from flamerecon.run.cli import output_folder, run_script, script_parser
@@ -54,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{c.name:10} {100 * c.silhouette:9.1f}% {100 * c.outside_box:11.1f}% {c.hull_iou:9.2f}")
         problems = [f"  {c.name}: {p}" for c in checks for p in c.problems]
         print(f"PROBLEMS ({len(problems)})\n" + "\n".join(problems) if problems else "no problem found")
+        print("\n".join(pose_report(scene, options)), flush=True)
         path = write_png(Path(args.out) / "capture_check.png", check_figure(scene, checks, masks, footprints, bbox))
         print(f"picture: {path}")
 

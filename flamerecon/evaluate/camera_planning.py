@@ -38,11 +38,12 @@ from flamerecon.operators.projector import render_image
 
 def weighted_deviations(conf: Confidence) -> list[torch.Tensor]:
     """The deviations (C, nz, ny, nx) of ``conf``, each times ``scale / sqrt(n)`` for the ``n``
-    members of its kind: the sum of their squares is the confidence volume squared."""
+    members of its kind (``poses``: ``1 / sqrt(n)``, a measured spread): the sum of their squares
+    is the confidence volume squared."""
     out = []
-    for _, devs in conf.deviations():
+    for kind, devs in conf.deviations():
         devs = list(devs)
-        weight = float(conf.scale) / len(devs) ** 0.5
+        weight = (1.0 if kind == "poses" else float(conf.scale)) / len(devs) ** 0.5
         out += [weight * d for d in devs]
     return out
 

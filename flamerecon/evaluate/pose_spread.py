@@ -22,7 +22,8 @@ class PoseSpread:
     """Per camera ``views`` (B names): the camera moved by plus and minus its pose offset,
     ``K`` (B, 2, 3, 3) and ``world_to_camera`` (B, 2, 4, 4), the ``share`` (B,) of that change
     its images confirmed, its one-sigma rotation ``rotation_deg`` (B,) and the shift of the
-    box's corners ``box_px`` (B,) in pixels, and where the offset came from (``sources``)."""
+    box's corners ``box_px`` (B,) in pixels, the PSNR its pose error cost its images where the
+    offset was measured ``lost_db`` (B,), and where the offset came from (``sources``)."""
 
     views: list[str]
     K: torch.Tensor
@@ -30,6 +31,7 @@ class PoseSpread:
     share: torch.Tensor
     rotation_deg: torch.Tensor
     box_px: torch.Tensor
+    lost_db: torch.Tensor
     sources: list[str]
 
     def __post_init__(self) -> None:
@@ -38,7 +40,7 @@ class PoseSpread:
         self.K = tensor("PoseSpread.K", self.K, "(B, 2, 3, 3)", shape=(B, 2, 3, 3), finite=True)
         self.world_to_camera = tensor("PoseSpread.world_to_camera", self.world_to_camera, "(B, 2, 4, 4)",
                                       shape=(B, 2, 4, 4), finite=True)
-        for name in ("share", "rotation_deg", "box_px"):
+        for name in ("share", "rotation_deg", "box_px", "lost_db"):
             setattr(self, name, tensor(f"PoseSpread.{name}", getattr(self, name), "(B,)", shape=(B,), finite=True))
 
     def moved(self, view: str, like: PinholeCamera) -> PinholeCamera:
@@ -64,11 +66,14 @@ class PoseSpread:
         return out
 
     def records(self) -> dict[str, dict]:
-        """{view: ``pose_sigma_deg``, ``pose_sigma_box_px``, ``pose_share``, ``pose_source``}."""
+        """{view: ``pose_sigma_deg``, ``pose_sigma_box_px``, ``pose_share``, ``pose_lost_db``,
+        ``pose_source``}."""
         return {v: {"pose_sigma_deg": float(self.rotation_deg[k]), "pose_sigma_box_px": float(self.box_px[k]),
-                    "pose_share": float(self.share[k]), "pose_source": self.sources[k]}
+                    "pose_share": float(self.share[k]), "pose_lost_db": float(self.lost_db[k]),
+                    "pose_source": self.sources[k]}
                 for k, v in enumerate(self.views)}
 
     def limiting(self) -> str | None:
-        """The camera whose pose uncertainty moves the box most in its image (None: none)."""
-        return self.views[int(self.box_px.argmax())] if self.views else None
+        """The camera whose pose error cost its images the most PSNR where it was measured
+        (``lost_db``): the calibration to distrust first (None: no camera)."""
+        return self.views[int(self.lost_db.argmax())] if self.views else None

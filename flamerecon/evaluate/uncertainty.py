@@ -11,11 +11,15 @@ from the reconstruction ``x``:
   changes: where the views disagree or one camera alone carries a structure);
 - ``weights``: the solver's weights perturbed (what the prior chose);
 - ``shift``: ``x`` moved by ``shift_voxels`` along each axis, both ways (where a structure is,
-  to a fraction of a voxel: the grid's and the views' resolution).
+  to a fraction of a voxel: the grid's and the views' resolution);
+- ``poses``: the densities fitted to the training pixels as the training cameras moved by their
+  measured pose offsets would record them (:mod:`flamerecon.fit.ensemble`).
 
-The predicted variance is ``scale**2`` times their sum: in the volume, of the voxel values; in
-an image, of the rendered deviations (a pixel integrates its ray, so neighbouring voxels'
-deviations add before they are squared). ``scale`` is chosen on frames that are not reported
+The predicted variance is ``scale**2`` times the sum of the first three plus the ``poses``
+part (a measured spread, not scaled): in the volume, of the voxel values; in an image, of the
+rendered deviations (a pixel integrates its ray, so neighbouring voxels' deviations add before
+they are squared), plus, for a camera of the scene named, its own pose's spread
+(:mod:`flamerecon.evaluate.pose_spread`). ``scale`` is chosen on frames that are not reported
 (docs/results.md).
 
 Why this ensemble (against the Laplace posterior of the active set, and each kind alone), its
@@ -44,7 +48,9 @@ from flamerecon.rules import number
 from flamerecon.scenes import Scene
 
 #: the deviation kinds of the spread, in the order they are summed
-KINDS = ("cameras", "weights", "shift")
+KINDS = ("cameras", "weights", "shift", "poses")
+#: the kinds of solved members (``shift`` needs no solve)
+SOLVED = ("cameras", "weights", "poses")
 
 
 
@@ -126,8 +132,8 @@ class Confidence:
         self.x = tensor("Confidence.x", self.x, "(M, C) hull values", shape=(M, None), finite=True)
         self.members = tensor("Confidence.members", self.members, "(K, M, C) hull values",
                               shape=(None, M, self.x.shape[1]), finite=True)
-        if len(self.groups) != self.members.shape[0] or not set(self.groups) <= set(KINDS[:2]):
-            raise wrong_value("Confidence.groups", self.groups, f"one kind of {list(KINDS[:2])} per member "
+        if len(self.groups) != self.members.shape[0] or not set(self.groups) <= set(SOLVED):
+            raise wrong_value("Confidence.groups", self.groups, f"one kind of {list(SOLVED)} per member "
                               f"({self.members.shape[0]})")
         value("Confidence.shift_voxels", self.shift_voxels, number(0, 2))  # uncertainty.shift_voxels' rule
         value("Confidence.scale", self.scale, number(0, lo_open=True))
@@ -142,7 +148,7 @@ class Confidence:
         """(kind, iterator over its deviations (C, nz, ny, nx)) per kind that has members; each
         deviation is made when it is read, so memory holds one at a time."""
         density = self.density
-        for kind in KINDS[:2]:
+        for kind in SOLVED:
             chosen = [m for m, g in zip(self.members, self.groups) if g == kind]
             if chosen:
                 yield kind, (self.grid.dense(m - self.x, self.voxel_index) for m in chosen)
@@ -153,12 +159,18 @@ class Confidence:
         """Per kind, the mean squared deviation (C, nz, ny, nx) of its members, unscaled."""
         return {kind: mean_square(devs) for kind, devs in self.deviations()}
 
+    def scaled(self, parts: dict[str, torch.Tensor], like: torch.Tensor) -> torch.Tensor:
+        """The predicted variance from unscaled ``parts``: ``scale**2`` times every kind's but
+        ``poses``' (a measured spread, taken as it is) plus that; zeros like ``like`` for none."""
+        total = like.new_zeros(like.shape)
+        for kind, part in parts.items():
+            total = total + (part if kind == "poses" else float(self.scale) ** 2 * part)
+        return total
+
     def volume(self) -> torch.Tensor:
         """The confidence volume (C, nz, ny, nx): the predicted one-sigma spread of each voxel's
         density, in the density's units (0 where the data and the hull leave nothing free)."""
-        parts = self.variance_parts()
-        total = sum(parts.values()) if parts else torch.zeros_like(self.density)
-        return float(self.scale) * total.sqrt()
+        return self.scaled(self.variance_parts(), self.density).sqrt()
 
     def image_parts(self, cams: PinholeCamera) -> dict[str, torch.Tensor]:
         """Per kind, the mean squared rendered deviation (B, C, H, W) through ``cams``, unscaled."""
@@ -171,10 +183,8 @@ class Confidence:
         spread of the rendered value (image units, before a camera's photometry). ``views``
         (B): the scene's name of each camera (None: a novel one), whose pose uncertainty
         (:attr:`poses`) adds its variance; None: no camera's is added."""
-        parts = self.image_parts(cams)
         B, H, W = cams.batch_size, int(cams.height[0]), int(cams.width[0])
-        variance = (float(self.scale) ** 2 * sum(parts.values()) if parts
-                    else self.x.new_zeros(B, self.x.shape[1], H, W))
+        variance = self.scaled(self.image_parts(cams), self.x.new_zeros(B, self.x.shape[1], H, W))
         if self.poses is not None and views is not None:
             variance = variance + self.poses.variance(self.density, self.grid, cameras_to(cams, self.x.device),
                                                       list(views), self.step)
@@ -316,7 +326,7 @@ def save_confidence(path: str | os.PathLike, conf: Confidence, views: list[str])
 
 
 #: the fields of a :class:`~flamerecon.evaluate.pose_spread.PoseSpread` that uncertainty.npz keeps
-POSE_FIELDS = ("views", "K", "world_to_camera", "share", "rotation_deg", "box_px", "sources")
+POSE_FIELDS = ("views", "K", "world_to_camera", "share", "rotation_deg", "box_px", "lost_db", "sources")
 
 
 def pose_array(value) -> np.ndarray:

@@ -11,6 +11,11 @@ Member kinds (``uncertainty.members``):
   each multiplied and divided by ``weight_factor`` in turn, the range cross-validation found
   about equally good on ScalarFlow (l1_rel 0.03-0.1, tv 0.015-0.05).
 
+With the cameras' pose offsets of a capture's calibration (:mod:`flamerecon.fit.pose_uncertainty`)
+two ``poses`` members are solved whatever ``uncertainty.members`` says: the training pixels as
+the training cameras moved by plus, then minus, their offsets would record them
+(:func:`posed_pixels`): what the cameras' pose uncertainty leaves free in the density.
+
 A member solve has the reconstruction's options (debias included) with ``iterations`` steps
 (None: the solver's ``max_iters``) and no weight selection (the weights chosen stay). Each
 member is a density on the reconstruction's hull; the sub-voxel shifts of
@@ -27,11 +32,15 @@ import torch
 
 from flamerecon.arguments import fields
 from flamerecon.errors import ConfigError, SolveDiverged
+from flamerecon.evaluate.pose_spread import PoseSpread
 from flamerecon.evaluate.uncertainty import Confidence
+from flamerecon.fit.build import fit_pixels as build_pixels
 from flamerecon.fit.pose_uncertainty import offsets_of, spread
 from flamerecon.fit.reconstruct import fit
 from flamerecon.fit.uncertainty_options import UncertaintyOptions
 from flamerecon.fit.weight_selection import row_subset
+from flamerecon.geometry.cameras import camera_subset, cameras_to
+from flamerecon.operators.projector import render_image
 from flamerecon.progress import Progress
 
 #: solver options that weigh a prior, perturbed by the ``weights`` members when the solver has one
@@ -80,12 +89,43 @@ def weight_variants(solver, factor: float) -> list[tuple[str, dict]]:
     return out
 
 
-def solve_ensemble(setup, options, x: torch.Tensor, uncertainty: UncertaintyOptions) -> Ensemble:
+def posed_pixels(setup, x: torch.Tensor, poses: PoseSpread) -> list[tuple[str, torch.Tensor]]:
+    """(label, pixels (N, C)) of the two ``poses`` members of the reconstruction ``x`` (M, C)
+    on ``setup``: the training pixels as every training camera with a pose offset would record
+    them moved by plus (then minus) its offset, to its share: ``pixels + sqrt(share) (render
+    moved - render)`` on its rows; none when no training camera has an offset."""
+    views = [setup.scene.views[v] for v in setup.train]
+    if not any(v in poses.views for v in views):
+        return []
+    cams = cameras_to(camera_subset(setup.scene.cameras, setup.train), setup.pixels.device)
+    rows = build_pixels(setup.options.projector.rays, setup.grid, cams, setup.hull, setup.masks[setup.train])
+    flat = rows.reshape(-1).nonzero().squeeze(1)
+    density = setup.volume(x)
+    base = render_image(density, setup.grid, cams, setup.step)
+    out = []
+    for sign, label in ((0, "poses:+"), (1, "poses:-")):
+        moved = base.clone()
+        for k, view in enumerate(views):
+            if view in poses.views:
+                share = float(poses.share[poses.views.index(view)])
+                cam = poses.moved(view, camera_subset(cams, [k]))
+                moved[k] = base[k] + share ** 0.5 * (render_image(density, setup.grid, camera_subset(
+                    cameras_to(cam, density.device), [sign]), setup.step)[0] - base[k])
+        change = (moved - base).permute(0, 2, 3, 1).reshape(-1, base.shape[1])[flat]
+        out.append((label, setup.pixels + change.to(setup.pixels)))
+    return out
+
+
+def solve_ensemble(setup, options, x: torch.Tensor, uncertainty: UncertaintyOptions,
+                   poses: PoseSpread | None = None) -> Ensemble:
     """The members of ``uncertainty.members`` for the reconstruction ``x`` (M, C) found on
     ``setup`` (:class:`~flamerecon.fit.build.Setup`) with ``options`` (the fit's, weights as
-    chosen). Logs a progress line per member."""
+    chosen), and with ``poses`` the two ``poses`` members (:func:`posed_pixels`). Logs a
+    progress line per member."""
     base = member_options(options, uncertainty)
     plans: list[tuple[str, object, object]] = []  # (label, setup, options)
+    if poses is not None:
+        plans += [(label, replace(setup, pixels=pixels), base) for label, pixels in posed_pixels(setup, x, poses)]
     kinds = uncertainty.members.split("+")
     if "cameras" in kinds:
         if len(setup.train) < 2:
@@ -120,10 +160,10 @@ def confidence(setup, options, x: torch.Tensor, uncertainty: UncertaintyOptions 
     cameras' pose uncertainty that the reconstruction's ``calibration`` record holds
     (:func:`~flamerecon.fit.pose_uncertainty.offsets_of`; none without)."""
     uncertainty = uncertainty or options.uncertainty
-    found = solve_ensemble(setup, options, x, uncertainty)
     started = time.perf_counter()
     offsets = offsets_of(calibration)
     poses = None if not offsets else spread(setup.scene.cameras, list(setup.scene.views), offsets, setup.grid)
+    found = solve_ensemble(setup, options, x, uncertainty, poses)
     return Confidence(setup.grid, setup.voxel_index, setup.hull, x, found.members, found.groups(),
                       float(uncertainty.shift_voxels), float(uncertainty.scale), setup.step,
-                      found.seconds + time.perf_counter() - started, found.labels, poses)
+                      time.perf_counter() - started, found.labels, poses)

@@ -18,14 +18,18 @@ frames (never of a scored frame) measure its offset, as they would calibrate a r
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from kornia.geometry.camera import PinholeCamera
 from kornia.geometry.liegroup import So3
 
+from flamerecon.errors import FlameReconError
 from flamerecon.evaluate.pose_spread import PoseSpread
+from flamerecon.fit.build import build, make_problem, scene_grid, scene_masks
+from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.refine_cameras import (
     N_PARAMS,
     CalibrationFrame,
@@ -36,11 +40,13 @@ from flamerecon.fit.refine_cameras import (
     corrected_cameras,
     fit_pixels,
     prior_sizes,
+    with_cameras,
 )
 from flamerecon.geometry.cameras import K_of, camera_subset, cameras_to, project_points
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import render_image
 from flamerecon.progress import Progress
+from flamerecon.scenes import Scene
 
 #: Levenberg-Marquardt iterations of an offset's fit
 ITERATIONS = 10
@@ -62,6 +68,11 @@ class PoseOffset:
     def share(self) -> float:
         """The part of the render's change that the images confirmed, in [0, 1]."""
         return min(1.0, max(0.0, (self.before - self.after) / self.change)) if self.change > 0 else 0.0
+
+    @property
+    def lost_db(self) -> float:
+        """The PSNR (dB) the offset gains its images: what the camera's pose error cost them."""
+        return 10.0 * math.log10(self.before / self.after) if self.before > self.after > 0 else 0.0
 
     def record(self) -> dict:
         return {"theta": self.theta.tolist(), "before": self.before, "after": self.after, "change": self.change,
@@ -147,7 +158,54 @@ def spread(cameras: PinholeCamera, views: list[str], offsets: dict[str, PoseOffs
                           for m in moved]).mean(0)
     return PoseSpread(names, torch.stack([K_of(m) for m in moved], 1), torch.stack([m.extrinsics for m in moved], 1),
                       share.float(), (torch.rad2deg(theta[:, :3].norm(dim=-1)) * share.sqrt()).float(),
-                      (shifts.sqrt() * share.sqrt()).float(), [offsets[v].source for v in names])
+                      (shifts.sqrt() * share.sqrt()).float(),
+                      torch.tensor([offsets[v].lost_db for v in names], dtype=torch.float32),
+                      [offsets[v].source for v in names])
+
+
+def scene_offsets(scene: Scene, options: ReconstructionOptions, device: torch.device | str = "cpu"
+                  ) -> dict[str, PoseOffset]:
+    """{name: :class:`PoseOffset`} of every camera of ``scene`` (its own cameras, as its
+    calibration gives them) against the density the others give on its frame (a plain solve of
+    ``options``' solver on its grid, no weight selection or debiasing): which camera's
+    calibration the others disagree with, before any camera fit."""
+    device = torch.device(device)
+    grid = scene_grid(options.grid, scene)
+    images = scene.images.to(device)
+
+    def solve(views: list[int], cams: PinholeCamera, start: torch.Tensor | None) -> torch.Tensor:
+        fold = options.replace(holdout=tuple(n for i, n in enumerate(scene.views) if i not in views))
+        setup = build(replace(scene, cameras=with_cameras(scene.cameras, views, cams)), fold, device, grid, scored=False)
+        problem, solver, _ = make_problem(fold.solver, setup)
+        return setup.volume(solver.solve(problem).x)
+
+    frame = CalibrationFrame(images, scene_masks(scene, images, options), solve)
+    found = capture_offsets([frame], scene.cameras, list(range(scene.num_views)), grid,
+                            replace(options.calibration, refine="pose"), float(options.projector.step),
+                            [scene.meta.get("frame", 0)])
+    return {scene.views[v]: offset for v, offset in found.items()}
+
+
+def pose_report(scene: Scene, options: ReconstructionOptions) -> list[str]:
+    """Lines that say each camera's pose uncertainty (:func:`scene_offsets`) and the camera
+    least certain; one line saying why when it cannot be measured."""
+    try:
+        offsets = scene_offsets(scene, options, options.device if options.device != "auto" else "cpu")
+    except FlameReconError as err:
+        return [f"pose uncertainty: not measured ({err})"]
+    grid = scene_grid(options.grid, scene)
+    found = spread(scene.cameras, list(scene.views), offsets, grid)
+    lines = [("pose uncertainty (each camera fitted to the density of the others, this frame; one sigma, and the "
+             "PSNR its pose error costs its image):"),
+             f"{'camera':10} {'degrees':>8} {'px at box':>10} {'costs dB':>9}"]
+    lines += [f"{name:10} {r['pose_sigma_deg']:8.3f} {r['pose_sigma_box_px']:10.2f} {r['pose_lost_db']:9.2f}"
+              for name, r in found.records().items()]
+    worst = found.limiting()
+    if worst is not None:
+        lines.append(f"least certain: {worst} (its pose error costs its image "
+                     f"{float(found.lost_db[found.views.index(worst)]):.2f} dB); a camera fit "
+                     "(calibration.refine=pose) corrects the training cameras")
+    return lines
 
 
 def offsets_of(calibration: dict | None) -> dict[str, PoseOffset]:

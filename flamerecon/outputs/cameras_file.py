@@ -3,8 +3,12 @@ refined calibration is kept (:mod:`flamerecon.fit.capture_calibration`).
 
 ``{"cameras": [{"name", "K" (3, 3) pixels, "world_to_camera" (4, 4) OpenCV, "width", "height",
 "split": "train" | "holdout", "gain", "offset", and after a refinement "K_calibrated",
-"world_to_camera_calibrated": the capture's own}, ...], ...}``; other top-level keys (a
-capture calibration's ``"calibration"`` record) are kept for the reader. Values are written
+"world_to_camera_calibrated": the capture's own; in a capture's calibration file also each
+camera's pose uncertainty, measured with the fit (:mod:`flamerecon.fit.pose_uncertainty`):
+"pose_sigma_deg" (one sigma, degrees), "pose_sigma_box_px" (the box's corners' shift in its
+image, pixels), "pose_share", "pose_source" and "pose_offset" (the offset and its figures)},
+...], ...}``; other top-level keys (a capture calibration's ``"calibration"`` record) are kept
+for the reader. Values are written
 from float32 tensors as exact decimals, so a file read back gives the very same cameras.
 """
 

@@ -128,14 +128,16 @@ def write_scores(run_dir: Path, metrics: dict, held_imgs: torch.Tensor, scene: S
 def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_imgs: torch.Tensor,
                      metrics: dict, writer: RunWriter) -> torch.Tensor:
     """uncertainty.npz (:func:`~flamerecon.evaluate.uncertainty.save_confidence`), each held-out
-    view's ``psnr_predicted`` in ``metrics``, its ``uncertainty`` record (members, scale, shift,
-    seconds) and the TensorBoard images ``uncertainty/<view>`` (render | captured | error |
-    predicted sigma); returns the held-out confidence images (V, C, H, W), in image units."""
+    view's ``psnr_predicted`` in ``metrics`` (its pose uncertainty included), its ``uncertainty``
+    record (members, scale, shift, seconds; with the cameras' pose uncertainty, ``poses`` per
+    camera and ``limiting_camera``) and the TensorBoard images ``uncertainty/<view>`` (render |
+    captured | error | predicted sigma); returns the held-out confidence images (V, C, H, W), in
+    image units."""
     scene, setup = rec.scene, rec.setup
     clock = time.perf_counter()
     save_confidence(run_dir / UNCERTAINTY_FILE, conf, [scene.views[i] for i in setup.train])
-    sigma = (conf.image(camera_subset(scene.cameras, setup.holdout)).cpu() if setup.holdout
-             else torch.zeros_like(held_imgs))
+    sigma = (conf.image(camera_subset(scene.cameras, setup.holdout), [scene.views[v] for v in setup.holdout]).cpu()
+             if setup.holdout else torch.zeros_like(held_imgs))
     recorded = recorded_sigma(scene, held_imgs, sigma)
     for k, v in enumerate(setup.holdout):
         metrics["heldout"][scene.views[v]]["psnr_predicted"] = predicted_psnr(recorded[k])
@@ -145,6 +147,8 @@ def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_
         writer.image(f"uncertainty/{scene.views[v]}", figure, rec.fit.result.iterations, "HWC")
     metrics["uncertainty"] = {"members": conf.labels, "scale": conf.scale, "shift_voxels": conf.shift_voxels,
                               "seconds": conf.seconds + time.perf_counter() - clock}
+    if conf.poses is not None:
+        metrics["uncertainty"].update(poses=conf.poses.records(), limiting_camera=conf.poses.limiting())
     return sigma
 
 

@@ -120,7 +120,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         conf = None
         if options.uncertainty.enabled and hook.stop is None:
             clock = time.perf_counter()
-            conf = confidence(rec.setup, rec.options, rec.fit.result.x)
+            conf = confidence(rec.setup, rec.options, rec.fit.result.x, calibration=rec.calibration)
             timing["uncertainty"] = time.perf_counter() - clock
         clock = time.perf_counter()
         metrics = write_outputs(run_dir, rec, cfg.scene, writer, hook.stop, conf)

@@ -21,6 +21,8 @@ def summary_table(metrics: dict) -> str:
         note = (f"by the confidence: {len(u.get('members', []))} members + shifts of "
                 f"{u.get('shift_voxels', 0):g} voxel, {u.get('seconds', 0.0):.1f} s; uncertainty.npz")
         rows.append(("  predicted [dB]", f"{mean_of(metrics['heldout'], 'psnr_predicted'):.2f}  ({note})"))
+        if u.get("limiting_camera"):
+            rows.append(("  calibration limits", limiting_text(u)))
     if held and "psnr_silhouette" in held[0]:
         rows.append(("  inside silhouettes [dB]", psnr_text(metrics["heldout"], "psnr_silhouette",
                                                             "psnr_black_silhouette")))
@@ -74,6 +76,16 @@ def summary_table(metrics: dict) -> str:
             for r in s["levels"])))
     width = max(len(r[0]) for r in rows)
     return "\n".join([f"  {k:<{width}}  {v}" for k, v in rows] + warnings_block(metrics.get("warnings", [])))
+
+
+def limiting_text(u: dict) -> str:
+    """The camera whose pose error cost its images the most (metrics.json's
+    ``uncertainty.limiting_camera``), with its figures."""
+    name = u["limiting_camera"]
+    r = u["poses"][name]
+    return (f"{name}: its pose error cost its images {r['pose_lost_db']:.2f} dB where it was measured, the "
+            f"most of any camera (uncertain by {r['pose_sigma_deg']:.2f} deg, {r['pose_sigma_box_px']:.2f} px at the "
+            "box; every camera's in metrics.json uncertainty.poses)")
 
 
 def psnr_text(per_view: dict, key: str, black: str | None, note: str = "") -> str:
