@@ -7,15 +7,21 @@ train.py's overrides describe it, its confidence (``uncertainty.*``), and per he
 the Spearman correlation of the predicted spread with the absolute error, per pixel whose ray
 meets the visual hull (everywhere else both are 0), beside that of the rendered intensity (the
 trivial predictor) and of an oracle that knows the error around each pixel within 2 px (a
-diagnosis: what a spread at that resolution could at best do); the coverage of the 1- and 2-sigma bands there (the trivial predictor's with
-its gain fitted to this very view); the measured and the predicted full-frame PSNR. ``--loo``
-holds out every camera in turn (leave-one-view-out) instead of the run's held-out ones. Writes
+diagnosis: what a spread at that resolution could at best do); the coverage of the 1- and
+2-sigma bands there (the trivial predictor's with its gain fitted to this very view); the
+measured and the predicted full-frame PSNR, and the prediction *before* the cameras' poses
+entered it (no pose spread; at ``--scale-before``, default ``uncertainty.scale``). ``--loo``
+holds out every camera in turn (leave-one-view-out) instead of the run's held-out ones, and
+prints per frame the rank correlation of the views' predicted PSNR with their measured one.
+With a scene whose cameras were given off from those that rendered it (``scene=synthetic_flame``
+with a camera fit), each camera's true pose error against its reported sigma. Writes
 FILE.json: ``{"frames": {"65": {"spearman", "spearman_trivial", "coverage_1sigma",
-"coverage_2sigma", "psnr", "psnr_predicted", ..., "views": {view: the same}}}, "scale_fit",
-"config"}`` (a frame's figures are the mean over its held-out views), and prints the table, the
-cost per frame (the run and the confidence), and ``scale_fit``: the ``uncertainty.scale`` that
-would make the mean predicted MSE equal the measured on these frames (their geometric mean:
-how the scale was chosen on frames that are then not reported).
+"coverage_2sigma", "psnr", "psnr_predicted", "psnr_predicted_before", ..., "views": {view: the
+same}}}, "scale_fit", "config"}`` (a frame's figures are the mean over its held-out views), and
+prints the table, the cost per frame (the run and the confidence), and ``scale_fit``: the
+``uncertainty.scale`` that would make the predicted MSE equal the measured on these frames, the
+cameras' pose part kept (their geometric mean: how the scale was chosen on frames that are then
+not reported).
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 # isort: split
 
+import torch
+
 from flamerecon.evaluate.metrics import resample_to
 from flamerecon.evaluate.scores import captured_silhouettes, silhouette_union
 from flamerecon.evaluate.uncertainty import (
@@ -44,8 +52,9 @@ from flamerecon.evaluate.uncertainty import (
     spearman,
 )
 from flamerecon.fit.ensemble import confidence
+from flamerecon.fit.pose_uncertainty import corrections_between, rotation_deg
 from flamerecon.fit.reconstruct import reconstruct
-from flamerecon.geometry.cameras import camera_subset
+from flamerecon.geometry.cameras import camera_subset, project_points
 from flamerecon.operators.projector import render_image
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.run.cli import at_least, compose_train, output_file, run_script, script_parser
@@ -54,12 +63,15 @@ from flamerecon.scenes import load_scene
 
 #: the columns of the table (and the figures averaged into a frame's entry)
 COLUMNS = ("spearman", "spearman_trivial", "spearman_oracle_2px", "coverage_1sigma", "coverage_2sigma",
-           "coverage_2sigma_trivial", "psnr", "psnr_predicted_density", "psnr_predicted")
+           "coverage_2sigma_trivial", "psnr", "psnr_predicted_before", "psnr_predicted")
 
 
-def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict], dict[str, float]]:
+def check_split(scene, options, views: list[int] | None, scale_before: float | None = None
+                ) -> tuple[dict[str, dict], dict[str, float]]:
     """Reconstruct ``scene`` holding out ``views`` (None: the options' held-out ones) and check
-    its confidence on each held-out view: ({view: figures}, {"run": s, "confidence": s})."""
+    its confidence on each held-out view: ({view: figures}, {"run": s, "confidence": s}).
+    ``psnr_predicted_before``: the prediction without the cameras' poses (no ``poses`` members,
+    no held-out pose spread) at ``scale_before`` (None: the options' scale)."""
     if views is not None:
         options = options.replace(holdout=tuple(scene.views[v] for v in views))
     clock = time.perf_counter()
@@ -69,10 +81,16 @@ def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict
     conf = confidence(rec.setup, rec.options, rec.fit.result.x, calibration=rec.calibration)
     cams = camera_subset(rec.scene.cameras, rec.setup.holdout)
     names = [scene.views[v] for v in rec.setup.holdout]
-    sigma = conf.image(cams, names).cpu()
+    parts = {k: v.cpu() for k, v in conf.image_parts(cams).items()}
+    zero = torch.zeros(cams.batch_size, conf.x.shape[1], *rec.scene.image_size)
+    unscaled = sum((v for k, v in parts.items() if k != "poses"), zero)  # the kinds the scale multiplies
+    pose_variance = parts.get("poses", zero)  # measured: the poses members' and the held-out camera's own
+    if conf.poses is not None:
+        pose_variance = pose_variance + conf.poses.variance(conf.density, conf.grid, cams, names, conf.step).cpu()
+    sigma = (float(conf.scale) ** 2 * unscaled + pose_variance).sqrt()
     domain = conf.footprint(cams).cpu()
     confidence_seconds = time.perf_counter() - clock
-    density_sigma = conf.image(cams).cpu()  # the density's part alone: the prediction before the cameras' poses
+    before = float(conf.scale if scale_before is None else scale_before) * unscaled.sqrt()
     rendered = render_image(rec.density, rec.grid, cams, rec.setup.step).cpu()
     captured = captured_silhouettes(rec.scene, rec.setup.holdout, options.silhouette.as_dict())
     union = silhouette_union(rendered, captured, options.silhouette.as_dict())
@@ -80,12 +98,15 @@ def check_split(scene, options, views: list[int] | None) -> tuple[dict[str, dict
     out = {}
     for k, v in enumerate(rec.setup.holdout):
         recorded = rec.scene.to_recorded(rendered[k])
-        density_only = recorded_sigma(rec.scene, rendered[k], density_sigma[k])
         out[scene.views[v]] = {**check_view(recorded, rec.scene.recorded_view(v),
                                             recorded_sigma(rec.scene, rendered[k], sigma[k]), domain[k], union[k]),
-                               "psnr_predicted_density": predicted_psnr(density_only),
-                               "density_variance": float(density_only.double().pow(2).mean()),
+                               "psnr_predicted_before": predicted_psnr(recorded_sigma(rec.scene, rendered[k], before[k])),
+                               "unscaled_variance": float(unscaled[k].double().mean()),
+                               "pose_variance": float(pose_variance[k].double().mean()),
                                **pose_figures(conf, scene.views[v]), **volume}
+    truth = pose_truth(rec, conf)  # one per fold: the cameras of this run
+    if truth:
+        out[scene.views[rec.setup.holdout[0]]]["poses_truth"] = truth
     return out, {"run": run_seconds, "confidence": confidence_seconds, "members": conf.seconds}
 
 
@@ -97,6 +118,31 @@ def pose_figures(conf, view: str) -> dict[str, float]:
     r = conf.poses.records()[view]
     return {"pose_sigma_deg": r["pose_sigma_deg"], "pose_sigma_box_px": r["pose_sigma_box_px"],
             "pose_share": r["pose_share"]}
+
+
+def pose_truth(rec, conf) -> dict[str, dict]:
+    """With a scene whose cameras were given off from those that rendered its images (the
+    synthetic flame's ``scene.calibration_error``): per camera with a pose offset, its true
+    error (the correction that takes the camera as the run has it, refined or not, to the one
+    that rendered its images) beside the reported one sigma, in degrees and in pixels at the
+    box; {} for any other scene."""
+    scene = rec.scene
+    if not scene.meta.get("calibration_error") or conf.poses is None:
+        return {}
+    true = load_scene({**scene.meta["config"], "calibration_error": 0.0}).cameras
+    pivot = 0.5 * (rec.grid.lo() + rec.grid.hi())
+    corners = rec.grid.corners()
+    reported = conf.poses.records()
+    out = {}
+    for view in conf.poses.views:
+        k = scene.views.index(view)
+        given, truth = camera_subset(scene.cameras, [k]), camera_subset(true, [k])
+        error = corrections_between(given, truth, pivot)[0]
+        shift = (project_points(given, corners)[0] - project_points(truth, corners)[0]).norm(dim=-1).pow(2).mean()
+        out[view] = {"true_deg": float(rotation_deg(error[None])[0]), "true_box_px": float(shift.sqrt()),
+                     "sigma_deg": reported[view]["pose_sigma_deg"], "sigma_box_px": reported[view]["pose_sigma_box_px"],
+                     "held_out": k in rec.setup.holdout}
+    return out
 
 
 def check_volume(rec, conf) -> dict[str, float]:
@@ -117,17 +163,29 @@ def check_volume(rec, conf) -> dict[str, float]:
             "volume_coverage_2sigma": coverage(error, sigma[inside], 2.0)}
 
 
-def exact_scale(r: dict, scale: float) -> float:
-    """The ``uncertainty.scale`` that would make view ``r``'s predicted PSNR its measured one,
-    its cameras' pose part unchanged; 0 where that part alone predicts more error than measured."""
-    measured = 10 ** (-r["psnr"] / 10)
-    pose = 10 ** (-r["psnr_predicted"] / 10) - r["density_variance"]
-    return scale * math.sqrt(max(measured - pose, 0.0) / r["density_variance"]) if r["density_variance"] > 0 else 0.0
+def truth_rates(truths: list[dict]) -> dict[str, float]:
+    """The fraction of cameras (each fold's, held-out and training apart) whose true pose error
+    lies within 2 reported sigma, in degrees and in pixels at the box."""
+    out = {}
+    for group, held in (("held_out", True), ("training", False)):
+        chosen = [t for t in truths if t["held_out"] == held]
+        for unit in ("deg", "box_px"):
+            if chosen:
+                out[f"{group}_{unit}"] = sum(t[f"true_{unit}"] <= 2 * t[f"sigma_{unit}"] for t in chosen) / len(chosen)
+    return out
+
+
+def exact_scale(r: dict) -> float:
+    """The ``uncertainty.scale`` that would make view ``r``'s predicted PSNR its measured one
+    (a linear camera), its cameras' pose part unchanged; 0 where that part alone predicts more
+    error than measured."""
+    left = 10 ** (-r["psnr"] / 10) - r["pose_variance"]
+    return math.sqrt(max(left, 0.0) / r["unscaled_variance"]) if r["unscaled_variance"] > 0 else 0.0
 
 
 def mean_figures(views: dict[str, dict]) -> dict[str, float]:
     """The mean of every figure that each of the views has."""
-    keys = set.intersection(*(set(v) for v in views.values()))
+    keys = set.intersection(*({k for k, x in v.items() if isinstance(x, float)} for v in views.values()))
     return {k: sum(v[k] for v in views.values()) / len(views) for k in keys}
 
 
@@ -142,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=at_least(0), nargs="+", required=True, help="scene.frame values")
     parser.add_argument("--out", type=output_file, required=True, help="the JSON file to write")
     parser.add_argument("--loo", action="store_true", help="hold out every camera in turn")
+    parser.add_argument("--scale-before", type=float, help="the scale of the 'before' prediction (the confidence "
+                        "without the cameras' poses); default: uncertainty.scale")
     args = parser.parse_args(argv)
 
     def run() -> None:
@@ -156,16 +216,28 @@ def main(argv: list[str] | None = None) -> int:
             splits = [[v] for v in range(scene.num_views)] if args.loo else [None]
             views, cost = {}, {"run": 0.0, "confidence": 0.0, "members": 0.0}
             for split in splits:
-                found, seconds = check_split(scene, options, split)
+                found, seconds = check_split(scene, options, split, args.scale_before)
                 views.update(found)
                 cost = {k: cost[k] + seconds[k] for k in cost}
                 for name, r in found.items():
-                    fits.append(exact_scale(r, options.uncertainty.scale))
+                    fits.append(exact_scale(r))
                     print(line(frame, name, r, f"{seconds['run']:.1f} + {seconds['confidence']:.1f}"), flush=True)
             entry = {**mean_figures(views), "views": views, "seconds": cost}
             record["frames"][str(frame)] = entry
             if len(views) > 1:
                 print(line(frame, "mean", entry), flush=True)
+                measured = torch.tensor([r["psnr"] for r in views.values()])
+                for key in ("psnr_predicted_before", "psnr_predicted"):
+                    entry[f"rank_{key}"] = spearman(torch.tensor([r[key] for r in views.values()]), measured)
+                entry["worst_miss"] = max(abs(r["psnr_predicted"] - r["psnr"]) for r in views.values())
+                print(f"      the views ranked by predicted PSNR against the measured: rank correlation "
+                      f"{entry['rank_psnr_predicted']:.2f} (before: {entry['rank_psnr_predicted_before']:.2f}); "
+                      f"largest miss {entry['worst_miss']:.2f} dB", flush=True)
+            truths = [t for r in views.values() for t in r.get("poses_truth", {}).values()]
+            if truths:
+                entry["poses_truth"] = truth_rates(truths)
+                print("      cameras' true pose errors within 2 sigma: " + ", ".join(
+                    f"{k} {v:.2f}" for k, v in entry["poses_truth"].items()), flush=True)
             if "volume_spearman" in entry:
                 print(f"      volume: rank correlation with |density - truth| {entry['volume_spearman']:.3f} (the "
                       f"density's own {entry['volume_spearman_trivial']:.3f}), coverage 1/2 sigma "

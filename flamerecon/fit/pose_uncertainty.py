@@ -50,6 +50,9 @@ from flamerecon.scenes import Scene
 
 #: Levenberg-Marquardt iterations of an offset's fit
 ITERATIONS = 10
+#: solver iterations of a density an offset is fitted against outside a camera fit (the offset
+#: needs the density's structure, not its last digits, as the camera fit's first solves do)
+SOLVE_ITERATIONS = 30
 
 
 @dataclass
@@ -167,11 +170,15 @@ def scene_offsets(scene: Scene, options: ReconstructionOptions, device: torch.de
                   ) -> dict[str, PoseOffset]:
     """{name: :class:`PoseOffset`} of every camera of ``scene`` (its own cameras, as its
     calibration gives them) against the density the others give on its frame (a plain solve of
-    ``options``' solver on its grid, no weight selection or debiasing): which camera's
-    calibration the others disagree with, before any camera fit."""
+    ``options``' solver on its grid, at most :data:`SOLVE_ITERATIONS` iterations, no weight
+    selection or debiasing): which camera's calibration the others disagree with, before any
+    camera fit."""
     device = torch.device(device)
     grid = scene_grid(options.grid, scene)
     images = scene.images.to(device)
+    if "max_iters" in options.solver.params:
+        options = options.replace(solver=options.solver.with_values(
+            max_iters=min(int(options.solver.params["max_iters"]), SOLVE_ITERATIONS)))
 
     def solve(views: list[int], cams: PinholeCamera, start: torch.Tensor | None) -> torch.Tensor:
         fold = options.replace(holdout=tuple(n for i, n in enumerate(scene.views) if i not in views))
