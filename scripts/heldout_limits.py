@@ -35,17 +35,11 @@ import kornia
 import torch
 
 import flamerecon as fr
-from flamerecon.fit.build import scene_masks
-from flamerecon.fit.refine_cameras import (
-    CameraFit,
-    RefineOptions,
-    camera_step,
-    corrected_cameras,
-    fit_pixels,
-    prior_sizes,
-)
 from flamerecon.evaluate.metrics import detail_band, detail_correlation
 from flamerecon.evaluate.scores import detail_sigma
+from flamerecon.fit.build import scene_masks
+from flamerecon.fit.pose_uncertainty import measure_offset
+from flamerecon.fit.refine_cameras import RefineOptions, corrected_cameras
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.run.cli import compose_train, frame_list, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config
@@ -88,21 +82,18 @@ def best_gain(rendered: torch.Tensor, captured: torch.Tensor) -> float:
     return float((rendered * captured).sum() / (rendered * rendered).sum().clamp_min(1e-30))
 
 
-def refit_pose(rec, view: int, iterations: int = 10) -> torch.Tensor:
+def refit_pose(rec, view: int) -> torch.Tensor:
     """The held-out camera ``view`` with its pose fitted to its own image against the run's
-    density; returns its render (1, C, H, W)."""
+    density (:func:`~flamerecon.fit.pose_uncertainty.measure_offset`); returns its render
+    (1, C, H, W)."""
     scene, grid = rec.scene, rec.grid
     cam = camera_subset(scene.cameras, [view])
-    image = scene.images[view:view + 1]
-    options = RefineOptions(refine="pose", max_rays=40000)
     pivot = 0.5 * (grid.lo() + grid.hi())
-    masks = scene_masks(scene, scene.images, rec.options)[view:view + 1]
-    index, valid = fit_pixels(masks, options.band_px, options.max_rays, torch.Generator().manual_seed(0))
-    fit = CameraFit([rec.density.cpu()], grid, cam, pivot, image, index, valid, rec.setup.step)
-    basis = torch.eye(9, dtype=torch.float64)[:, :6]  # one camera: no gauge to hold
-    theta, _ = camera_step(fit, torch.zeros(1, 9), prior_sizes(cam, pivot, options), basis, list(range(6)),
-                           iterations)
-    return fr.render(rec.density.cpu(), grid, corrected_cameras(cam, theta, pivot), rec.setup.step)
+    masks = scene_masks(scene, scene.images, rec.options)
+    found = measure_offset([rec.density.cpu()], grid, cam, [scene.images[view]], [masks[view]], rec.setup.step,
+                           pivot, RefineOptions(refine="pose", max_rays=40000), "its own image")
+    return fr.render(rec.density.cpu(), grid, corrected_cameras(cam, found.theta[None].float(), pivot),
+                     rec.setup.step)
 
 
 def main(argv: list[str] | None = None) -> int:
