@@ -370,7 +370,7 @@ def estimate_flow(frames: Sequence[Reconstruction | Run], options: FlowOptions |
     if all(isinstance(n, int) for n in numbers) and any(b != a + 1 for a, b in pairwise(numbers)):
         raise wrong_value("estimate_flow.frames", numbers, "consecutive frames in order (t, t+1, t+2, ...): a "
                           "velocity carries one frame onto the next")
-    frame_rate = options.frame_rate or frames[0].scene.meta.get("frame_rate")
+    frame_rate = options.frame_rate or frames[0].scene.frame_rate
     target = resolve_device(str(device)) if device is not None else frames[0].density.device
 
     def next_setup(i: int):

@@ -48,11 +48,13 @@ from flamerecon.run.tensorboard import RunWriter
 from flamerecon.scenes import Scene, load_scene
 
 CONFIG_FILE = Path(".hydra") / "config.yaml"
-RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "overwrite", "log", "checkpoint", "export", "hydra")
+RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "overwrite", "log", "checkpoint", "export", "hydra",
+                  "leave_one_out")
 #: what a run writes into its folder (besides TensorBoard's ``events.out.tfevents.*`` and the
 #: atomic writers' stale temporaries): what ``overwrite=true`` removes before a new run there
 RUN_ENTRIES = frozenset({
     ".hydra", "train.log", "density.npz", "cameras.json", "metrics.json", "renders", "checkpoint.pt", "FAILED",
+    "leave_one_out",
     "frames", "multirun.yaml", "density.raw.json", *(f"density.{fmt}" for fmt in FORMATS)})
 #: the folders and the log a run writes into (through a symbolic link it would write elsewhere)
 RUN_SUBFOLDERS = (".hydra", "renders", "frames", "train.log")
@@ -103,6 +105,8 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
     metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
     H, W = scene.image_size
     metrics["resolution"] = {"working": [W, H]}
+    metrics["scene"] = {"up": scene.up, "up_source": scene.up_source, "unit": scene.unit,
+                        "frame_rate": scene.frame_rate}
     if native_scene is not None:
         found = native_scores(native_scene, volume, grid, [scene.views[v] for v in holdout], step)
         if found is not None:
