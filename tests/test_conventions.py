@@ -23,7 +23,8 @@ from flamerecon.geometry.axes import (
     up_from_cameras,
     up_vector,
 )
-from flamerecon.scenes.base import SceneError, length_name
+from flamerecon.geometry.units import display_length, length_name
+from flamerecon.scenes.base import SceneError
 from tests.helpers import REPO
 
 EXAMPLE = REPO / "examples" / "capture"
@@ -167,3 +168,10 @@ def test_lengths_are_named_by_the_unit(unit, name):
 def test_scalarflow_is_y_up_metric_at_its_own_frame_rate():
     scene = fr.load_scene("scalarflow")
     assert (scene.up, scene.unit, scene.frame_rate) == ("+y", 1.0, 30.0)
+
+
+@pytest.mark.parametrize("unit, extent, expected", [(None, 2.0, (1.0, "world units")), (1.0, 0.74, (100.0, "cm")),
+                                                    (0.0005, 96, (0.5, "mm")), (1.0, 3.0, (1.0, "m"))])
+def test_figures_show_lengths_in_a_unit_that_suits_them(unit, extent, expected):
+    factor, name = display_length(unit, extent)
+    assert (pytest.approx(factor), name) == expected

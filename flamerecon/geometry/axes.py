@@ -115,3 +115,15 @@ def turn_volume(volume: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
             flips.append(lead + len(order) - 1)
     turned = volume.permute(*range(lead), *order)
     return turned.flip(flips) if flips else turned
+
+
+def ground_directions(up: str) -> tuple[tuple[int, float], tuple[int, float]]:
+    """The two signed world axes across ``up`` that a figure shows as its horizontal and its
+    second direction ((axis index, +-1.0) each): +y's x and z, carried by :func:`turn_from_y`,
+    so that a scene turned to another up draws the same pictures (top view, slices, orbits)."""
+    Q = turn_from_y(up)
+    out = []
+    for column in (0, 2):  # the images of +x and +z
+        axis = int(Q[:, column].abs().argmax())
+        out.append((axis, float(Q[axis, column])))
+    return out[0], out[1]

@@ -207,7 +207,7 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
     writer.scalars(rec.fit.result.iterations, {f"heldout_{k}": mean_of(metrics["heldout"], k) for k in (
         "detail", "detail_silhouette") if k in next(iter(metrics["heldout"].values()), {})}, "eval")
     writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
-                                                  setup.grid.bbox_max), 0, "HWC")
+                                                  setup.grid.bbox_max, scene.up), 0, "HWC")
     solver = options.solver
     writer.hparams(
         {"scene": scene_options["name"], "solver": solver.name, "l1": rec.fit.l1,

@@ -100,7 +100,7 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
     for img, v in zip(imgs, s.holdout):
         writer.image(f"{root}heldout/{s.scene.views[v]}", heldout_figure(img, s.scene.images[v], s.scene.views[v]),
                      it, "HWC")
-    writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
+    writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max, s.scene.up), it, "HWC")
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from flamerecon.arguments import fields, one_or_many, tensor
 from flamerecon.errors import FlameReconError
 from flamerecon.geometry.axes import UP_AXES, axis_name
 from flamerecon.geometry.grid import VoxelGrid, checked_box
+from flamerecon.geometry.units import length_name
 from flamerecon.geometry.photometry import delinearize
 
 
@@ -162,12 +163,3 @@ class Scene:
         img = self.images[v]
         return (tuple(img.shape), float(img.double().sum()), float((img.double() ** 2).sum()))
 
-
-def length_name(unit: float | None) -> str:
-    """How to label a length in world units of ``unit`` metres (None: unknown)."""
-    if unit is None:
-        return "world units"
-    for metres, name in ((1.0, "m"), (1e-2, "cm"), (1e-3, "mm")):
-        if abs(unit / metres - 1.0) < 1e-9:
-            return name
-    return f"world units of {unit:g} m"

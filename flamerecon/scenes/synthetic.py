@@ -234,7 +234,7 @@ def check_memory(n: int, width: int, height: int, truth_grid: VoxelGrid) -> None
 
 @register_scene("synthetic", keys=("n_cameras", "width", "height", "downscale", "frame", "seed",
                                          "phantom_resolution", "phantom_step", "noise", "peak", "field",
-                                         "azimuths", "calibration_error", "up"))
+                                         "azimuths", "calibration_error", "up", "unit"))
 def load(cfg) -> Scene:
     """Config keys: n_cameras, width, height (the native size), downscale (the working size is
     width // downscale x height // downscale), phantom_resolution, phantom_step, noise, frame,
@@ -243,7 +243,8 @@ def load(cfg) -> Scene:
     images by which every camera given to the solver, held-out ones too, is off from the one
     that rendered its image; fixed by the seed, the same on every frame), up (the axis the
     flame rises along, ``+y`` by default: the whole scene, cameras, box and truth, turned by
-    :func:`~flamerecon.geometry.axes.turn_from_y`; the images stay the same)."""
+    :func:`~flamerecon.geometry.axes.turn_from_y`; the images stay the same), unit (metres per
+    world unit: null, the flame's lengths are world units, unless given)."""
     n = read_int(cfg.get("n_cameras", 8), "config", "scene.n_cameras", 2)
     W, H = (read_int(cfg.get(k, default), "config", f"scene.{k}") for k, default in (("width", 320), ("height", 240)))
     seed = read_int(cfg.get("seed", 0), "config", "scene.seed", 0)
@@ -303,7 +304,8 @@ def load(cfg) -> Scene:
               **({"field": field} if field != "turbulent" else {}),
               **({"calibration_error": error_px} if error_px > 0 else {})},
         up=up, up_source="config scene.up" if "up" in cfg and cfg.get("up") is not None else "the synthetic flame's own (+y)",
-        frame_rate=1.0 / SECONDS_PER_FRAME,
+        frame_rate=1.0 / SECONDS_PER_FRAME, unit=None if cfg.get("unit") is None else read_float(
+            cfg["unit"], "config", "scene.unit", POSITIVE),
     )
 
 
