@@ -182,7 +182,7 @@ def scene_offsets(scene: Scene, options: ReconstructionOptions, device: torch.de
 
     def solve(views: list[int], cams: PinholeCamera, start: torch.Tensor | None) -> torch.Tensor:
         fold = options.replace(holdout=tuple(n for i, n in enumerate(scene.views) if i not in views))
-        setup = build(replace(scene, cameras=with_cameras(scene.cameras, views, cams)), fold, device, grid, scored=False)
+        setup = build(replace(scene, cameras=with_cameras(scene.cameras, views, cams)), fold, device, grid)
         problem, solver, _ = make_problem(fold.solver, setup)
         return setup.volume(solver.solve(problem).x)
 
