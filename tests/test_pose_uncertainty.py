@@ -35,6 +35,12 @@ from tests.helpers import CliRun
 SCENE = {"width": 48, "height": 36, "n_cameras": 5, "phantom_resolution": 32}
 
 
+def offset(theta, before, after, change, source, curvature=None) -> PoseOffset:
+    """A pose offset with the figures given (no curvature unless given)."""
+    return PoseOffset(theta, before, after, change, source,
+                      torch.zeros(9, 9, dtype=torch.float64) if curvature is None else curvature)
+
+
 @pytest.fixture(scope="module")
 def scene():
     return fr.load_scene("synthetic", **SCENE)
@@ -76,15 +82,18 @@ def test_a_camera_off_by_a_known_motion_is_fitted_back_and_its_images_confirm_it
     off_after = (project_points(back, corners)[0] - project_points(target, corners)[0]).norm(dim=-1).mean()
     assert float(off_after) < 0.3 * float(off_before)
     assert found.after < 0.3 * found.before and 0.7 < found.share <= 1.0
+    spread_of = found.curvature[3:6, 3:6].diagonal().sqrt()  # the fit's one sigma of the translation
+    assert bool((spread_of > 0).all()) and float(spread_of.max()) < 0.3 * float(error.abs().max())
 
 
 def test_the_share_is_the_part_of_the_change_the_images_confirm():
     theta = torch.zeros(9, dtype=torch.float64)
-    assert PoseOffset(theta, 4.0, 1.0, 6.0, "x").share == pytest.approx(0.5)
-    assert PoseOffset(theta, 4.0, 5.0, 6.0, "x").share == 0.0  # moving made it worse: nothing confirmed
-    assert PoseOffset(theta, 9.0, 1.0, 4.0, "x").share == 1.0  # at most all of it
-    assert PoseOffset(theta, 1.0, 1.0, 0.0, "x").share == 0.0
-    again = PoseOffset.from_record(PoseOffset(theta + 0.5, 4.0, 1.0, 6.0, "y").record())
+    assert offset(theta, 4.0, 1.0, 6.0, "x").share == pytest.approx(0.5)
+    assert offset(theta, 4.0, 5.0, 6.0, "x").share == 0.0  # moving made it worse: nothing confirmed
+    assert offset(theta, 9.0, 1.0, 4.0, "x").share == 1.0  # at most all of it
+    assert offset(theta, 1.0, 1.0, 0.0, "x").share == 0.0
+    again = PoseOffset.from_record(offset(theta + 0.5, 4.0, 1.0, 6.0, "y", torch.eye(9, dtype=torch.float64)).record())
+    assert torch.equal(again.curvature, torch.eye(9, dtype=torch.float64))
     assert again.share == pytest.approx(0.5) and float(again.theta[0]) == 0.5 and again.source == "y"
     assert offsets_of(None) == {} and offsets_of({"poses": {"a": again.record()}})["a"].before == 4.0
 
@@ -94,7 +103,7 @@ def test_the_pose_spread_of_a_render_is_the_share_of_its_change_both_ways(scene,
     pivot = 0.5 * (grid.lo() + grid.hi())
     theta = torch.zeros(9, dtype=torch.float64)
     theta[3], theta[1] = 0.04, 0.02
-    offsets = {"cam01": PoseOffset(theta, 5.0, 2.0, 4.0, "test")}  # share 0.75
+    offsets = {"cam01": offset(theta, 5.0, 2.0, 4.0, "test")}  # share 0.75
     found = spread(scene.cameras, list(scene.views), offsets, grid)
     assert found.views == ["cam01"] and found.limiting() == "cam01"
     variance = found.variance(density, grid, scene.cameras, list(scene.views))
@@ -111,6 +120,16 @@ def test_the_pose_spread_of_a_render_is_the_share_of_its_change_both_ways(scene,
     assert r["pose_lost_db"] == pytest.approx(10 * math.log10(5.0 / 2.0), rel=1e-5)
     novel = found.variance(density, grid, cam, [None])  # a novel camera: no pose of its own to doubt
     assert float(novel.abs().max()) == 0.0
+    curvature = torch.zeros(9, 9, dtype=torch.float64)
+    curvature[:3, :3] = torch.diag(torch.tensor([1e-4, 4e-4, 1e-4], dtype=torch.float64))  # sigma 0.01, 0.02, 0.01 rad
+    fitted = spread(scene.cameras, list(scene.views), {"cam01": offset(theta, 5.0, 2.0, 4.0, "t", curvature)}, grid,
+                    {"cam01"})  # refined by a camera fit: its curvature, not its offset
+    r = fitted.records()["cam01"]
+    assert r["pose_sigma_deg"] == pytest.approx(math.degrees(math.sqrt(6e-4)), rel=1e-4) and r["pose_share"] == 1.0
+    axis = torch.tensor([[0.0, 0.02, 0, 0, 0, 0, 0, 0, 0]])  # its principal axis, one sigma, both ways
+    both = torch.cat([corrected_cameras(cam, sign * axis, pivot).extrinsics for sign in (1, -1)])
+    moved = fitted.moved("cam01", cam).extrinsics
+    assert min(float((moved - both).abs().max()), float((moved - both.flip(0)).abs().max())) < 1e-5
 
 
 def test_the_confidence_adds_a_named_cameras_pose_spread_and_keeps_it_in_its_file(scene, tmp_path):
@@ -119,7 +138,7 @@ def test_the_confidence_adds_a_named_cameras_pose_spread_and_keeps_it_in_its_fil
     rec = fr.reconstruct(scene, options)
     theta = torch.zeros(9, dtype=torch.float64)
     theta[4] = 0.05
-    calibration = {"poses": {"cam04": PoseOffset(theta, 3.0, 1.0, 2.0, "test").record()}}
+    calibration = {"poses": {"cam04": offset(theta, 3.0, 1.0, 2.0, "test").record()}}
     conf = confidence(rec.setup, rec.options, rec.fit.result.x, fr.UncertaintyOptions(scale=1.0), calibration)
     cams = camera_subset(rec.scene.cameras, [4])
     alone, named = conf.image(cams), conf.image(cams, ["cam04"])
@@ -173,7 +192,7 @@ def test_the_poses_members_see_the_training_cameras_moved_and_are_not_scaled(sce
     rec = fr.reconstruct(scene, options)
     theta = torch.zeros(9, dtype=torch.float64)
     theta[3] = 0.05
-    offsets = {"cam01": PoseOffset(theta, 3.0, 1.0, 2.0, "test")}  # a training camera, share 1
+    offsets = {"cam01": offset(theta, 3.0, 1.0, 2.0, "test")}  # a training camera, share 1
     poses = spread(rec.scene.cameras, list(rec.scene.views), offsets, rec.grid)
     found = posed_pixels(rec.setup, rec.fit.result.x, poses)
     assert [label for label, _ in found] == ["poses:+", "poses:-"]

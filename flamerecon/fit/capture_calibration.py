@@ -161,7 +161,8 @@ def add_pose_records(records: list[dict], scene: Scene, cameras: PinholeCamera, 
     ``pose_sigma_box_px``, ``pose_share`` and ``pose_source``
     (:meth:`~flamerecon.evaluate.pose_spread.PoseSpread.records`)."""
     named = {scene.views[v]: found for v, found in offsets.items()}
-    summary = spread(cameras, list(scene.views), named, grid).records()
+    fitted = {r["name"] for r in records if r["split"] == "train"}
+    summary = spread(cameras, list(scene.views), named, grid, fitted).records()
     for record in records:
         if record["name"] in named:
             record.update(pose_offset=named[record["name"]].record(), **summary[record["name"]])

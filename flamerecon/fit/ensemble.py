@@ -158,11 +158,13 @@ def confidence(setup, options, x: torch.Tensor, uncertainty: UncertaintyOptions 
     (M, C) found on ``setup`` with ``options``: the ensemble of ``uncertainty`` (default:
     ``options.uncertainty``) solved (:func:`solve_ensemble`), its shift and scale, and the
     cameras' pose uncertainty that the reconstruction's ``calibration`` record holds
-    (:func:`~flamerecon.fit.pose_uncertainty.offsets_of`; none without)."""
+    (:func:`~flamerecon.fit.pose_uncertainty.offsets_of`, the cameras it refined as fitted;
+    none without)."""
     uncertainty = uncertainty or options.uncertainty
     started = time.perf_counter()
     offsets = offsets_of(calibration)
-    poses = None if not offsets else spread(setup.scene.cameras, list(setup.scene.views), offsets, setup.grid)
+    fitted = set((calibration or {}).get("cameras") or {})  # the cameras the camera fit refined
+    poses = None if not offsets else spread(setup.scene.cameras, list(setup.scene.views), offsets, setup.grid, fitted)
     found = solve_ensemble(setup, options, x, uncertainty, poses)
     return Confidence(setup.grid, setup.voxel_index, setup.hull, x, found.members, found.groups(),
                       float(uncertainty.shift_voxels), float(uncertainty.scale), setup.step,

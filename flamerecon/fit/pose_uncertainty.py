@@ -1,19 +1,26 @@
-"""How well each camera's pose is known, measured from the data: leave-one-camera-out
+"""How well each camera's pose is known, measured from the data by leave-one-camera-out
 consistency. A camera's *pose offset* is the correction ``theta`` (:mod:`flamerecon.fit.refine_cameras`:
 rotation about the box centre, translation; with ``pose+intrinsics`` also focal scale and
 principal point) that fits its images to the density solved from the *other* training cameras
 (a held-out camera: from all of them), Levenberg-Marquardt from its own pose; the pose itself
 is not changed. With the offset come the full-frame mean squared errors of its render before
-and after the offset (``before``, ``after``) and the render's mean squared change when moved by
-plus and minus the offset (``change``): the ``share`` ``(before - after) / change`` (in [0, 1])
-is how much of that change the images confirm, the rest being the density's own freedom along
-poorly determined directions (an orbit about a plume looks alike from nearby angles).
+and after the offset (``before``, ``after``), the render's mean squared change when moved by
+plus and minus the offset (``change``), and the fit's curvature at the offset (Gauss-Newton
+``s2 (J^T J)^-1``, ``s2`` the mean squared residual there). The ``share`` ``(before - after) /
+change`` (in [0, 1]) is how much of that change the images confirm, the rest being the
+density's own freedom along poorly determined directions (an orbit about a plume looks alike
+from nearby angles).
 
-Why this estimate (against the camera fit's curvature and the prior that the training cameras'
-corrections imply) and how it predicts held-out errors: docs/results.md, "Cameras in the
-confidence". A capture's offsets are measured once, on its calibration frames, and kept in its
-calibration file (:mod:`flamerecon.fit.capture_calibration`): a held-out camera's images of those
-frames (never of a scored frame) measure its offset, as they would calibrate a rig.
+A camera's pose uncertainty is then, by the protocol: a camera whose pose the camera fit
+refined has the curvature of its offset's fit (the data pinned its pose; the offset itself
+measures the density of the fewer other cameras as much as the camera); any other camera (a
+held-out one, under the strict protocol) has its offset, to its share (nothing refined it: it is
+as far off as its images say). Why (against the offsets of the fitted cameras, and the prior
+that the fit's corrections of the training cameras imply) and how it predicts held-out errors:
+docs/results.md, "Cameras in the confidence". A capture's offsets are measured once, on its
+calibration frames, and kept in its calibration file (:mod:`flamerecon.fit.capture_calibration`):
+a held-out camera's images of those frames (never of a scored frame) measure its offset, as
+they would calibrate a rig; its pose stays as the capture's calibration gives it.
 """
 
 from __future__ import annotations
@@ -59,13 +66,15 @@ SOLVE_ITERATIONS = 30
 class PoseOffset:
     """One camera's pose offset ``theta`` (9,) float64 and its figures on the frames it was
     measured on (mean squared errors, full frame, images in [0, 1]): ``before`` / ``after``
-    the offset, the render's ``change`` when moved by plus and minus it; ``source``: how."""
+    the offset, the render's ``change`` when moved by plus and minus it; ``source``: how;
+    ``curvature`` (9, 9) float64: the covariance of ``theta`` the fit's curvature gives."""
 
     theta: torch.Tensor
     before: float
     after: float
     change: float
     source: str
+    curvature: torch.Tensor
 
     @property
     def share(self) -> float:
@@ -79,12 +88,13 @@ class PoseOffset:
 
     def record(self) -> dict:
         return {"theta": self.theta.tolist(), "before": self.before, "after": self.after, "change": self.change,
-                "source": self.source}
+                "source": self.source, "curvature": self.curvature.tolist()}
 
     @classmethod
     def from_record(cls, record: dict) -> PoseOffset:
         return cls(torch.tensor(record["theta"], dtype=torch.float64), float(record["before"]),
-                   float(record["after"]), float(record["change"]), str(record["source"]))
+                   float(record["after"]), float(record["change"]), str(record["source"]),
+                   torch.tensor(record["curvature"], dtype=torch.float64))
 
 
 def mse(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -106,8 +116,14 @@ def measure_offset(volumes: Sequence[torch.Tensor], grid: VoxelGrid, cam: Pinhol
         fits.append(CameraFit([volume], grid, cam, pivot, image[None], index, valid, step))
     active = options.active or list(range(6))
     basis = torch.eye(N_PARAMS, dtype=torch.float64)[:, active]  # one camera: no gauge to hold
-    theta, _ = camera_step(JointFit(fits), torch.zeros(1, N_PARAMS, device=volumes[0].device),
+    joint = JointFit(fits)
+    theta, _ = camera_step(joint, torch.zeros(1, N_PARAMS, device=volumes[0].device),
                            prior_sizes(cam, pivot, options), basis, active, ITERATIONS)
+    residuals, J = joint.jacobian(theta, active)
+    J = J.double().reshape(-1, N_PARAMS)[:, active].cpu()
+    curvature = torch.zeros(N_PARAMS, N_PARAMS, dtype=torch.float64)
+    where = torch.tensor(active)
+    curvature[where[:, None], where[None, :]] = float(residuals.double().pow(2).mean()) * torch.linalg.pinv(J.T @ J)
     before = after = change = 0.0
     for volume, image in zip(volumes, images):
         base = render_image(volume, grid, cam, step)[0]
@@ -116,7 +132,7 @@ def measure_offset(volumes: Sequence[torch.Tensor], grid: VoxelGrid, cam: Pinhol
         before += mse(base, image) / len(volumes)
         after += mse(plus, image) / len(volumes)
         change += 0.5 * (mse(plus, base.clamp(0, 1)) + mse(minus, base.clamp(0, 1))) / len(volumes)
-    return PoseOffset(theta[0].detach().double().cpu(), before, after, change, source)
+    return PoseOffset(theta[0].detach().double().cpu(), before, after, change, source, curvature)
 
 
 def capture_offsets(frames: Sequence[CalibrationFrame], cameras: PinholeCamera, train: list[int], grid: VoxelGrid,
@@ -145,25 +161,41 @@ def capture_offsets(frames: Sequence[CalibrationFrame], cameras: PinholeCamera, 
     return found
 
 
-def spread(cameras: PinholeCamera, views: list[str], offsets: dict[str, PoseOffset], grid: VoxelGrid) -> PoseSpread:
+def spread(cameras: PinholeCamera, views: list[str], offsets: dict[str, PoseOffset], grid: VoxelGrid,
+           fitted: set[str] | frozenset[str] = frozenset()) -> PoseSpread:
     """The :class:`~flamerecon.evaluate.pose_spread.PoseSpread` of the cameras named in
-    ``offsets`` among ``cameras`` (B, named ``views``), about the box centre of ``grid``."""
+    ``offsets`` among ``cameras`` (B, named ``views``), about the box centre of ``grid``: a
+    camera in ``fitted`` (its pose refined by the camera fit) moved by plus and minus the
+    principal axis of its offset's curvature, with share 1; any other by its offset, to its
+    share (the module's docstring)."""
     names = [v for v in views if v in offsets]
     index = [views.index(v) for v in names]
     pivot = 0.5 * (grid.lo() + grid.hi())
     cams = cameras_to(camera_subset(cameras, index), "cpu")
-    theta = torch.stack([offsets[v].theta for v in names]) if names else torch.zeros(0, N_PARAMS, dtype=torch.float64)
-    share = torch.tensor([offsets[v].share for v in names], dtype=torch.float64)
-    moved = [corrected_cameras(cams, sign * theta.float(), pivot) for sign in (1, -1)]
+    steps, shares = [], []
+    for v in names:
+        if v in fitted:
+            values, vectors = torch.linalg.eigh(offsets[v].curvature)
+            steps.append(vectors[:, -1] * values[-1].clamp_min(0).sqrt())
+            shares.append(1.0)
+        else:
+            steps.append(offsets[v].theta)
+            shares.append(offsets[v].share)
+    step = torch.stack(steps) if names else torch.zeros(0, N_PARAMS, dtype=torch.float64)
+    share = torch.tensor(shares, dtype=torch.float64)
+    moved = [corrected_cameras(cams, sign * step.float(), pivot) for sign in (1, -1)]
     corners = grid.corners()
     at, _ = project_points(cams, corners)
     shifts = torch.stack([(project_points(m, corners)[0] - at).double().norm(dim=-1).pow(2).mean(-1)
                           for m in moved]).mean(0)
+    sigma = torch.stack([offsets[v].curvature[:3, :3].trace().clamp_min(0).sqrt() if v in fitted
+                         else offsets[v].theta[:3].norm() * offsets[v].share ** 0.5 for v in names]) if names \
+        else torch.zeros(0, dtype=torch.float64)
     return PoseSpread(names, torch.stack([K_of(m) for m in moved], 1), torch.stack([m.extrinsics for m in moved], 1),
-                      share.float(), (torch.rad2deg(theta[:, :3].norm(dim=-1)) * share.sqrt()).float(),
-                      (shifts.sqrt() * share.sqrt()).float(),
+                      share.float(), torch.rad2deg(sigma).float(), (shifts.sqrt() * share.sqrt()).float(),
                       torch.tensor([offsets[v].lost_db for v in names], dtype=torch.float32),
-                      [offsets[v].source for v in names])
+                      [("the curvature of its fit to " if v in fitted else "its offset to ") + offsets[v].source
+                       for v in names])
 
 
 def scene_offsets(scene: Scene, options: ReconstructionOptions, device: torch.device | str = "cpu"
