@@ -36,7 +36,7 @@ from flamerecon.fit.build import (
     split_views,
 )
 from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
-from flamerecon.fit.checks import check_grid_memory, density_fault, memory_budget
+from flamerecon.fit.checks import check_before_work, check_grid_memory, density_fault, memory_budget
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import LadderOptions, Level, ladder_rungs, plan_levels
 from flamerecon.fit.options import ReconstructionOptions
@@ -119,6 +119,10 @@ class SolveHook:
     def resume(self) -> ResumePoint | None:
         """The stage to continue from (None: start afresh)."""
         return None
+
+    def begin(self) -> None:
+        """Called once, when the inputs have passed every check made before any work (the run
+        layer's hook prints the composed config here); this one does nothing."""
 
     def joint(self, setups: list[Setup], solve: Callable[[Callable | None], Any]) -> Any:
         """The joint solve of several frames (:func:`flamerecon.fit.joint_frames.reconstruct_frames`):
@@ -607,7 +611,9 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     volume = None if resumed is not None else init
     if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, levels[0].grid if levels else fine, int(scene.images.shape[1]))
+    check_before_work(scene, options, fine)
     check_workload(scene, options, fine, device)
+    hook.begin()
     timing: dict = {}
     clock = time.perf_counter()
     scene, calibration = calibrated_scene(scene, options, device)

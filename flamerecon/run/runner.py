@@ -104,7 +104,8 @@ def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
 def config_block(cfg: DictConfig, run_dir: str | Path, overrides: list[str] | None) -> str:
     """The composed config's nodes that set a run apart, as YAML (scene, holdout, device, grid,
     solver, and debias, select and calibration when they are on), with the command line's
-    overrides and where the whole config is kept; printed when a run starts."""
+    overrides and where the whole config is kept; printed once the run's checks have passed
+    (:meth:`~flamerecon.fit.reconstruct.SolveHook.begin`): a refused command prints one line."""
     plain = OmegaConf.to_container(cfg, resolve=False)
     shown = {k: plain[k] for k in ("scene", "holdout", "device", "grid", "solver") if k in plain}
     if (plain.get("debias") or {}).get("method", "none") != "none":
@@ -150,8 +151,7 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
             run_dir = resumed
         else:
             anchor_scene_root(cfg, start)
-            print(config_block(cfg, run_dir, overrides), flush=True)
-            metrics = reconstruct(cfg, run_dir)
+            metrics = reconstruct(cfg, run_dir, announce=config_block(cfg, run_dir, overrides))
     except FlameReconError as err:
         if debug:
             raise
