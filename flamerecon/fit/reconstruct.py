@@ -48,7 +48,7 @@ from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
 from flamerecon.progress import Progress
 from flamerecon.rules import integer, number
-from flamerecon.scenes import Scene, capture_length, load_downscaled
+from flamerecon.scenes import Scene, capture_frames, load_downscaled
 from flamerecon.solvers import Problem, Solver, SolveResult
 
 log = logging.getLogger(__name__)
@@ -458,7 +458,7 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
                 {**record, "downscale": rungs[0].downscale})
     started = time.perf_counter()
     if refining.frames == "auto":
-        refining = refining.for_capture(capture_length(scene))
+        refining = refining.for_capture(capture_frames(scene))
         options = options.replace(calibration=refining)
     if "calibrated_cameras" in scene.meta:
         scene = replace(scene, cameras=scene.meta["calibrated_cameras"],
@@ -628,6 +628,10 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     final = options
     if options.ladder.final_iterations and any(level.downscale is not None for level in levels):
         final = options.replace(solver=options.solver.with_values(max_iters=options.ladder.final_iterations))
+        log.info("ladder.final_iterations=%d: the run's own level solves %d iterations after the ladder's rungs, "
+                 "not solver.max_iters=%s (give solver.max_iters on the command line and it holds there too)",
+                 options.ladder.final_iterations, options.ladder.final_iterations,
+                 options.solver.params.get("max_iters"))
     setup = build(scene, final, device, fine)
     timing.update(setup=setup.seconds, assembly=setup.assembly_seconds)
     x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)

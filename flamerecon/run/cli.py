@@ -132,7 +132,8 @@ def _writable(folder: Path, path: Path) -> Path:
 
 def compose_train(overrides: list[str], default_scene: str | None = "scalarflow"):
     """``conf/train.yaml`` composed with train.py ``overrides``, ``scene=<default_scene>`` in
-    front unless they choose a scene (the real-capture scripts' default; None: the config's)."""
+    front unless they choose a scene (the real-capture scripts' default; None: the config's),
+    an option they give winning over a preset's rule that would override it (:func:`as_given`)."""
     from hydra import compose, initialize_config_dir
 
     from flamerecon.resources import config_dir
@@ -140,7 +141,31 @@ def compose_train(overrides: list[str], default_scene: str | None = "scalarflow"
     if default_scene and not any(o.startswith("scene=") for o in overrides):
         overrides = [f"scene={default_scene}", *overrides]
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return compose(config_name="train", overrides=overrides)
+        return as_given(compose(config_name="train", overrides=overrides), overrides)[0]
+
+
+def as_given(cfg, overrides: list[str] | None):
+    """(``cfg``, notes): ``cfg`` with every preset's rule that overrides an option the command
+    line's ``overrides`` give dropped (:func:`~flamerecon.fit.option_rules.given_wins`: with
+    ``solver.max_iters`` given, ScalarFlow's ``ladder.final_iterations`` no longer replaces it on
+    the run's own level), and a line saying so for each (``cfg`` itself when none applies)."""
+    from omegaconf import OmegaConf
+
+    from flamerecon.fit.option_rules import YIELDS, given_keys, given_wins, leaves
+
+    given = given_keys(overrides or [])
+    flat = leaves(OmegaConf.to_container(cfg, resolve=False))
+    dropped = given_wins(flat, given)
+    if not dropped:
+        return cfg, []
+    cfg = cfg.copy()
+    notes = []
+    for key, overridden, when in YIELDS:
+        if key in dropped:
+            OmegaConf.update(cfg, key, None, merge=False)
+            notes.append(f"{key}: the preset's {flat[key]} set to null: {overridden}={flat[overridden]}, given on "
+                         f"the command line, holds {when} too")
+    return cfg, notes
 
 
 def run_child(command: list[str]) -> subprocess.CompletedProcess:

@@ -120,6 +120,24 @@ def config_block(cfg: DictConfig, run_dir: str | Path, overrides: list[str] | No
             + "\n".join(f"  {line}" for line in text.splitlines()))
 
 
+def given_wins(cfg: DictConfig, overrides: list[str] | None, run_dir: str | Path) -> tuple[DictConfig, list[str]]:
+    """(``cfg``, notes): ``cfg`` as the command line's ``overrides`` mean it, before any work: an option given
+    that does nothing in the combination refused (:func:`~flamerecon.fit.option_rules.check_options`
+    with the keys given: ``uncertainty.scale=5`` without ``uncertainty.enabled``), and a preset's
+    rule that would override an option given dropped (:func:`~flamerecon.run.cli.as_given`;
+    ``.hydra/config.yaml`` rewritten to what runs, so that ``resume=`` goes on alike), and a line
+    for each rule dropped (printed with the config once the checks have passed)."""
+    from flamerecon.fit.option_rules import check_options, given_keys
+    from flamerecon.run.cli import as_given
+
+    check_options(OmegaConf.to_container(cfg, resolve=True), given_keys(overrides or []))
+    cfg, notes = as_given(cfg, overrides)
+    saved = Path(run_dir) / ".hydra" / "config.yaml"
+    if notes and saved.is_file():
+        atomic_write_text(saved, OmegaConf.to_yaml(cfg))
+    return cfg, notes
+
+
 def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
              cwd: str | Path | None = None, overrides: list[str] | None = None) -> float | None:
     """Reconstruct (or resume, with ``resume=RUN_DIR``: the run's own config, with the budget
@@ -151,7 +169,8 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
             run_dir = resumed
         else:
             anchor_scene_root(cfg, start)
-            metrics = reconstruct(cfg, run_dir, announce=config_block(cfg, run_dir, overrides))
+            cfg, notes = given_wins(cfg, overrides, run_dir)
+            metrics = reconstruct(cfg, run_dir, announce="\n".join([config_block(cfg, run_dir, overrides), *notes]))
     except FlameReconError as err:
         if debug:
             raise

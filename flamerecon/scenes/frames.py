@@ -191,21 +191,23 @@ def frame_file(folder: Path, frame: int) -> Path:
     raise SceneError(f"{folder}: frame {frame}: no file {frame:06d}.png there (it has {listing})")
 
 
-def source_length(path: str | Path) -> int:
-    """How many frames the source of a frame read from ``path`` holds: a video's frame count
-    (its container's, not decoded), the numbered images beside a frame of a frame folder, 1 for
-    an image on its own."""
+def source_frames(path: str | Path) -> list[int] | None:
+    """The frame numbers the source of a frame read from ``path`` holds, in order: 0 to a
+    video's frame count less one (its container's count, not decoded), the numbers of the
+    numbered images beside a frame of a frame folder (50, 51, 53: a gap stays a gap); None for
+    an image on its own, which any frame number reads."""
     path = Path(path)
     if path.suffix.lower() in VIDEO_EXTENSIONS:
         with native_stderr_silenced():
             cap = cv2.VideoCapture(str(path))
             try:
-                return max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 1)
+                return list(range(max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 1)))
             finally:
                 cap.release()
     if path.stem.isdigit():
-        return sum(1 for p in path.parent.iterdir() if p.stem.isdigit() and p.suffix.lower() in IMAGE_EXTENSIONS)
-    return 1
+        return sorted({int(p.stem) for p in path.parent.iterdir()
+                       if p.stem.isdigit() and p.suffix.lower() in IMAGE_EXTENSIONS})
+    return None
 
 
 def read_camera_frame(root: str | Path, name: str, frame: int) -> tuple[np.ndarray, Path]:
