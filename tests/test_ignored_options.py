@@ -38,14 +38,14 @@ RUNS = {
         r"ladder\.final_iterations: the preset's 12 set to null: solver\.max_iters=3, given on the command line", 3),
     "the preset's ladder.final_iterations alone: the rule holds, said": (
         [*RUNG], ["solver.max_iters=5", "ladder.final_iterations=12"], 0,
-        r"ladder\.final_iterations=12: the run's own level solves 12 iterations after the ladder's rungs, not "
-        r"solver\.max_iters=5", 12),
+        (r"ladder\.final_iterations=12: the run's own level solves 12 iterations after the ladder's rungs, not "
+        r"solver\.max_iters=5"), 12),
     "both given: ladder.final_iterations holds on the run's own level": (
         [*RUNG, "solver.max_iters=3", "ladder.final_iterations=7"], [], 0, r"ladder\.final_iterations=7: ", 7),
     "uncertainty.scale without uncertainty.enabled": (
         ["uncertainty.scale=5"], [], 2,
-        r"uncertainty\.scale: got 5, which does nothing without the confidence \(uncertainty\.enabled=true\); set "
-        r"that too or drop uncertainty\.scale from the command line", None),
+        (r"uncertainty\.scale: got 5, which does nothing without the confidence \(uncertainty\.enabled=true\); set "
+        r"that too or drop uncertainty\.scale from the command line"), None),
     "a preset's uncertainty.scale without uncertainty.enabled": (["log.eval_every=0"], ["uncertainty.scale=1.82"], 0,
                                                                  r"held-out PSNR", 10),
     "ladder.final_iterations given, no rung runs": (
@@ -53,14 +53,14 @@ RUNS = {
         None),
     "a rung finer than the run's own grid": (
         ["ladder.rungs=[[2,32]]"], [], 2,
-        r"ladder\.rungs: rung \[2, 32\] \(\d+x32x\d+ cells\) is finer than the run's own grid \(\d+x16x\d+ cells, "
-        r"grid\.resolution\); .* give grid\.resolution at least 32, or drop the rung", None),
+        (r"ladder\.rungs: rung \[2, 32\] \(\d+x32x\d+ cells\) is finer than the run's own grid \(\d+x16x\d+ cells, "
+        r"grid\.resolution\); .* give grid\.resolution at least 32, or drop the rung"), None),
     "a rung as fine as the run's own grid (coarser images)": ([*RUNG[1:], "ladder.rungs=[[2,16]]"], [], 0,
                                                               r"held-out PSNR", 10),
     "the confidence with one training camera": (
         ["uncertainty.enabled=true", "holdout=[1,2,3,4]"], [], 2,
-        r"uncertainty\.enabled: the confidence needs at least two training cameras .* this run trains on 1; hold "
-        r"out fewer cameras", None),
+        (r"uncertainty\.enabled: the confidence needs at least two training cameras .* this run trains on 1; hold "
+        r"out fewer cameras"), None),
     "the confidence with one training camera, weights only": (
         ["uncertainty.enabled=true", "uncertainty.members=weights", "holdout=[0,1,2,3]"], [], 2,
         r"uncertainty\.enabled: the confidence needs at least two training cameras", None),
@@ -91,7 +91,7 @@ def test_an_option_given_is_never_ignored(case, tmp_path, capsys, caplog, monkey
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["solver"]["iterations"] == iterations
     if "ladder" in case and "both" not in case:
-        assert [level["iterations"] for level in metrics["solver"]["levels"]][0] == (
+        assert next(level["iterations"] for level in metrics["solver"]["levels"]) == (
             3 if "max_iters given" in case else 5)  # the rung: the solver's max_iters
 
 
