@@ -29,6 +29,8 @@ from tests.helpers.views import write_png
 ERROR = "flamerecon: error: "
 #: a ladder rung that runs on the tiny synthetic scene (its own downscale is 1)
 RUNG = ["ladder.rungs=[[2,8]]", "solver.tol=0", "log.eval_every=0"]
+#: a short weight selection (a preset's select.auto)
+SELECTION = ["select.folds=2", "select.iterations=5"]
 
 # (what the command line gives, what a preset set (not given), status, words of the line or of the
 # output, iterations on the run's own level or None)
@@ -42,6 +44,15 @@ RUNS = {
         r"solver\.max_iters=5"), 12),
     "both given: ladder.final_iterations holds on the run's own level": (
         [*RUNG, "solver.max_iters=3", "ladder.final_iterations=7"], [], 0, r"ladder\.final_iterations=7: ", 7),
+    "solver.l1_rel given, a preset's select.auto": (
+        ["solver.l1_rel=0.05", "log.eval_every=0"], ["select.auto=true", *SELECTION], 0,
+        r"select\.auto: the preset's true set to false: solver\.l1_rel=0\.05, given on the command line, wins", 10),
+    "a preset's select.auto alone: the weights chosen, said": (
+        ["log.eval_every=0"], ["select.auto=true", *SELECTION], 0, r"held-out PSNR", 10),
+    "select.auto and solver.l1_rel both given": (
+        ["select.auto=true", "solver.l1_rel=0.05"], [], 2,
+        (r"solver\.l1_rel: given with select\.auto=true, which chooses the solver's weights from select\.candidates, "
+         r"so solver\.l1_rel would not be used; give one of them"), None),
     "uncertainty.scale without uncertainty.enabled": (
         ["uncertainty.scale=5"], [], 2,
         (r"uncertainty\.scale: got 5, which does nothing without the confidence \(uncertainty\.enabled=true\); set "
@@ -90,6 +101,8 @@ def test_an_option_given_is_never_ignored(case, tmp_path, capsys, caplog, monkey
     assert re.search(words, out + caplog.text), out + caplog.text
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["solver"]["iterations"] == iterations
+    if "select.auto" in case:  # the selection ran only where no weight was given
+        assert ("selection" in metrics["solver"]) == ("alone" in case), metrics["solver"].keys()
     if "ladder" in case and "both" not in case:
         assert next(level["iterations"] for level in metrics["solver"]["levels"]) == (
             3 if "max_iters given" in case else 5)  # the rung: the solver's max_iters

@@ -107,14 +107,19 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
 def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid) -> None:
     """What a reconstruction of ``scene`` with ``options`` on ``grid`` refuses before any work
     (each refusal one line): the split (``holdout``), a confidence asked for with fewer than two
-    training cameras, the cameras against the box (:func:`check_scene`) and the training
-    views' silhouettes (:func:`check_silhouettes`); the build checks them again on each level."""
+    training cameras, a ``calibration.file`` that cannot give the training cameras, the cameras
+    against the box (:func:`check_scene`) and the training views' silhouettes
+    (:func:`check_silhouettes`); the build checks them again on each level."""
     train, _ = scene.split(None if options.holdout is None else list(options.holdout))
     if options.uncertainty.enabled and len(train) < 2:
         raise ConfigError(
             f"uncertainty.enabled: the confidence needs at least two training cameras (its ensemble leaves each "
             f"out in turn; with one it sees nothing the cameras leave open and predicts far too high a PSNR), "
             f"this run trains on {len(train)}; hold out fewer cameras (holdout=...), or leave uncertainty off")
+    if options.calibration.file is not None:  # read (and refused) before any work, as the run reads it later
+        from flamerecon.fit.capture_calibration import file_cameras
+
+        file_cameras(options.calibration.file, scene, train)
     check_scene(scene, grid)
     masks = scene.masks
     if masks is None:

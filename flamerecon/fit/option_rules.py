@@ -509,11 +509,36 @@ def check_options(config: dict, given: Collection[str] | None = None) -> None:
     check_needs(flat, given=given)
 
 
-#: rules by which an option overrides another: (the overriding key, the key it overrides, when).
-#: Where the command line gives the overridden key and not the overriding one, the overriding one
-#: (a preset's) is dropped, so that the option given wins (:func:`given_wins`); the rule is said
-#: in the run's log where it applies.
-YIELDS = (("ladder.final_iterations", "solver.max_iters", "on the run's own level once a ladder rung ran"),)
+@dataclass(frozen=True)
+class Yield:
+    """A rule by which a preset's option ``key`` overrides options the command line may give
+    (``overridden(flat)``: their keys), in words ``what`` it does; ``off``: the value of ``key``
+    that turns the rule off. Given one of those options and not ``key``, the rule is turned off
+    and said (the option given wins); given both, ``conflict`` says whether the option given
+    would then go unused (refused) or only holds elsewhere (kept)."""
+
+    key: str
+    off: object
+    overridden: Callable[[Mapping], tuple[str, ...]]
+    what: str
+    conflict: bool
+
+
+def _selected(flat: Mapping) -> tuple[str, ...]:
+    """The solver options the weight selection chooses: ``solver.l1``, ``solver.l1_rel`` and
+    every key of the run's solver's ``select.candidates``."""
+    candidates = (flat.get("select.candidates") or {}).get(flat.get("solver.name")) or []
+    return tuple(dict.fromkeys(["solver.l1", "solver.l1_rel",
+                                *(f"solver.{k}" for c in candidates if isinstance(c, Mapping) for k in c)]))
+
+
+#: the rules by which an option overrides another (:class:`Yield`, :func:`given_wins`); each is
+#: said in the run's log where it holds
+YIELDS = (
+    Yield("ladder.final_iterations", None, lambda flat: ("solver.max_iters",),
+          "sets the iterations of the run's own level once a ladder rung ran", False),
+    Yield("select.auto", False, _selected, "chooses the solver's weights from select.candidates", True),
+)
 
 
 def given_keys(overrides: Collection[str]) -> set[str]:
@@ -527,9 +552,21 @@ def given_keys(overrides: Collection[str]) -> set[str]:
     return keys
 
 
-def given_wins(flat: Mapping, given: Collection[str]) -> dict[str, None]:
-    """{overriding key: None} for every rule of :data:`YIELDS` whose overridden key is among
-    ``given`` and whose overriding key is set in ``flat`` but not given: the values to merge
-    into the config so that the option given wins."""
-    return {key: None for key, overridden, _ in YIELDS
-            if overridden in given and key not in given and flat.get(key) is not None}
+def given_wins(flat: Mapping, given: Collection[str]) -> dict[str, tuple[object, str]]:
+    """{overriding key: (the value that turns its rule off, the option given it would override)}
+    for every rule of :data:`YIELDS` that holds in ``flat`` ({dotted key: value}) over an option
+    among ``given`` while its own key is not given: the values to set so that the option given
+    wins. Both given where the option would go unused (``Yield.conflict``): a ConfigError."""
+    out = {}
+    for rule in YIELDS:
+        hit = [k for k in rule.overridden(flat) if k in given]
+        if not hit or flat.get(rule.key) is None or flat.get(rule.key) == rule.off:
+            continue
+        if rule.key in given:
+            if rule.conflict:
+                shown = str(flat[rule.key]).lower() if isinstance(flat[rule.key], bool) else flat[rule.key]
+                raise ConfigError(f"{hit[0]}: given with {rule.key}={shown}, which {rule.what}, "
+                                  f"so {hit[0]} would not be used; give one of them")
+            continue
+        out[rule.key] = (rule.off, hit[0])
+    return out

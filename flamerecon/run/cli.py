@@ -145,27 +145,35 @@ def compose_train(overrides: list[str], default_scene: str | None = "scalarflow"
 
 
 def as_given(cfg, overrides: list[str] | None):
-    """(``cfg``, notes): ``cfg`` with every preset's rule that overrides an option the command
-    line's ``overrides`` give dropped (:func:`~flamerecon.fit.option_rules.given_wins`: with
-    ``solver.max_iters`` given, ScalarFlow's ``ladder.final_iterations`` no longer replaces it on
-    the run's own level), and a line saying so for each (``cfg`` itself when none applies)."""
+    """(``cfg``, notes): ``cfg`` with every preset's rule that would override an option the
+    command line's ``overrides`` give turned off (:func:`~flamerecon.fit.option_rules.given_wins`:
+    with ``solver.max_iters`` given, ScalarFlow's ``ladder.final_iterations`` no longer replaces
+    it on the run's own level; with ``solver.l1_rel`` given, a preset's ``select.auto`` no longer
+    chooses it), and a line saying so for each (``cfg`` itself when none applies)."""
     from omegaconf import OmegaConf
 
     from flamerecon.fit.option_rules import YIELDS, given_keys, given_wins, leaves
 
-    given = given_keys(overrides or [])
     flat = leaves(OmegaConf.to_container(cfg, resolve=False))
-    dropped = given_wins(flat, given)
-    if not dropped:
+    turned = given_wins(flat, given_keys(overrides or []))
+    if not turned:
         return cfg, []
     cfg = cfg.copy()
     notes = []
-    for key, overridden, when in YIELDS:
-        if key in dropped:
-            OmegaConf.update(cfg, key, None, merge=False)
-            notes.append(f"{key}: the preset's {flat[key]} set to null: {overridden}={flat[overridden]}, given on "
-                         f"the command line, holds {when} too")
+    for rule in YIELDS:
+        if rule.key in turned:
+            off, hit = turned[rule.key]
+            OmegaConf.update(cfg, rule.key, off, merge=False)
+            notes.append(f"{rule.key}: the preset's {_as_typed(flat[rule.key])} set to {_as_typed(off)}: "
+                         f"{hit}={_as_typed(flat[hit])}, given on the command line, wins (the rule {rule.what})")
     return cfg, notes
+
+
+def _as_typed(value) -> str:
+    """A config value as the command line writes it (null, true, false; others as they print)."""
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def run_child(command: list[str]) -> subprocess.CompletedProcess:

@@ -120,7 +120,7 @@ def config_block(cfg: DictConfig, run_dir: str | Path, overrides: list[str] | No
             + "\n".join(f"  {line}" for line in text.splitlines()))
 
 
-def given_wins(cfg: DictConfig, overrides: list[str] | None, run_dir: str | Path) -> tuple[DictConfig, list[str]]:
+def as_the_command_line_says(cfg: DictConfig, overrides: list[str] | None, run_dir: str | Path) -> tuple[DictConfig, list[str]]:
     """(``cfg``, notes): ``cfg`` as the command line's ``overrides`` mean it, before any work: an option given
     that does nothing in the combination refused (:func:`~flamerecon.fit.option_rules.check_options`
     with the keys given: ``uncertainty.scale=5`` without ``uncertainty.enabled``), and a preset's
@@ -169,7 +169,7 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
             run_dir = resumed
         else:
             anchor_scene_root(cfg, start)
-            cfg, notes = given_wins(cfg, overrides, run_dir)
+            cfg, notes = as_the_command_line_says(cfg, overrides, run_dir)
             metrics = reconstruct(cfg, run_dir, announce="\n".join([config_block(cfg, run_dir, overrides), *notes]))
     except FlameReconError as err:
         if debug:
