@@ -66,6 +66,10 @@ CASES = [
                          "fit_against": "others", "first_iterations": 5, "solve_iterations": 5,
                          "seed": 1}.items()],
     (["calibration.resolution=8", "calibration.refine=pose"], None),
+    (["export.iso=0.2"], "export.iso"),
+    (["export.iso=0.2", "export=mesh"], None),
+    (["log.eval_share=0.5", "log.eval_every=0"], "log.eval_share"),
+    (["log.eval_share=0.5", "log.eval_every=5"], None),
 ]
 
 #: keys a preset may set (Need.preset): refused only where the command line gives them

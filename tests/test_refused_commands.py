@@ -45,6 +45,8 @@ REFUSED = {
                                                r"silhouette\.threshold=0\.99 is above every pixel of view 'cam00'"),
     "confidence with one training camera": ([*TINY, *SMALLER, "holdout=[1,2,3,4]", "uncertainty.enabled=true"], False,
                                             r"uncertainty\.enabled: the confidence needs at least two training cameras"),
+    "a calibration file that is not there": ([*TINY, *SMALLER, "calibration.file=/nonexistent/cameras.json"], False,
+                                             r"calibration\.file: /nonexistent/cameras\.json does not exist"),
     "a box no camera sees": ([*TINY, *SMALLER, "grid.bbox=[[100,100,100],[101,101,101]]"], False,
                              r"view 'cam00': the camera does not see the box"),
 }

@@ -459,6 +459,10 @@ NEEDS: dict[str, Need] = {
                               "the refit debias (debias.method=refit)", True),
     **{f"select.{key}": Need(_given, lambda flat: flat.get("select.auto") is True,
                              "the weight selection (select.auto=true)", True) for key in ("folds", "iterations")},
+    "export.iso": Need(_given, lambda flat: bool(set(flat.get("export.formats") or ()) & {"ply", "obj", "mesh", "all"}),
+                       "a mesh export (export=mesh, or export.formats with ply, obj or all)", True),
+    "log.eval_share": Need(_given, lambda flat: (flat.get("log.eval_every") or 0) > 0,
+                           "held-out pictures during the solve (log.eval_every >= 1)", True),
     **{f"calibration.{key}": Need(_given, lambda flat: flat.get("calibration.refine", "none") != "none",
                                   "a camera fit (calibration.refine=pose or pose+intrinsics)", True)
        for key in ("rounds", "iterations", "band_px", "max_rays", "prior_rotation_deg", "prior_translation",
@@ -524,6 +528,12 @@ class Yield:
     conflict: bool
 
 
+#: the options of a camera fit (what a calibration.file replaces)
+_FIT = tuple(f"calibration.{key}" for key in (
+    "refine", "frames", "rounds", "iterations", "band_px", "max_rays", "prior_rotation_deg", "prior_translation",
+    "prior_focal", "prior_principal_px", "fit_against", "resolution", "first_iterations", "solve_iterations", "seed"))
+
+
 def _selected(flat: Mapping) -> tuple[str, ...]:
     """The solver options the weight selection chooses: ``solver.l1``, ``solver.l1_rel`` and
     every key of the run's solver's ``select.candidates``."""
@@ -538,6 +548,9 @@ YIELDS = (
     Yield("ladder.final_iterations", None, lambda flat: ("solver.max_iters",),
           "sets the iterations of the run's own level once a ladder rung ran", False),
     Yield("select.auto", False, _selected, "chooses the solver's weights from select.candidates", True),
+    Yield("holdout", None, lambda flat: ("scene.holdout",), "holds out its own views in place of the scene's", True),
+    Yield("calibration.file", None, lambda flat: _FIT, "reads the cameras from the file in place of a camera fit",
+          True),
 )
 
 
