@@ -55,12 +55,12 @@ RUNS = {
          r"so solver\.l1_rel would not be used; give one of them"), None),
     "holdout and scene.holdout both given": (
         ["holdout=[cam01]", "++scene.holdout=[cam02]"], [], 2,
-        r"scene\.holdout: given with holdout=\['cam01'\], which holds out its own views in place of the scene's, so "
-        r"scene\.holdout would not be used; give one of them", None),
+        (r"scene\.holdout: given with holdout=\['cam01'\], which holds out its own views in place of the scene's, so "
+        r"scene\.holdout would not be used; give one of them"), None),
     "calibration.file and calibration.refine both given": (
         ["calibration.file=cameras.json", "calibration.refine=pose"], [], 2,
-        r"calibration\.refine: given with calibration\.file=cameras\.json, which reads the cameras from the file in "
-        r"place of a camera fit, so calibration\.refine would not be used", None),
+        (r"calibration\.refine: given with calibration\.file=cameras\.json, which reads the cameras from the file in "
+        r"place of a camera fit, so calibration\.refine would not be used"), None),
     "uncertainty.scale without uncertainty.enabled": (
         ["uncertainty.scale=5"], [], 2,
         (r"uncertainty\.scale: got 5, which does nothing without the confidence \(uncertainty\.enabled=true\); set "

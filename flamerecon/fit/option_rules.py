@@ -461,7 +461,7 @@ NEEDS: dict[str, Need] = {
                              "the weight selection (select.auto=true)", True) for key in ("folds", "iterations")},
     "export.iso": Need(_given, lambda flat: bool(set(flat.get("export.formats") or ()) & {"ply", "obj", "mesh", "all"}),
                        "a mesh export (export=mesh, or export.formats with ply, obj or all)", True),
-    "log.eval_share": Need(_given, lambda flat: (flat.get("log.eval_every") or 0) > 0,
+    "log.eval_share": Need(lambda v: v is not None, lambda flat: (flat.get("log.eval_every") or 0) > 0,
                            "held-out pictures during the solve (log.eval_every >= 1)", True),
     **{f"calibration.{key}": Need(_given, lambda flat: flat.get("calibration.refine", "none") != "none",
                                   "a camera fit (calibration.refine=pose or pose+intrinsics)", True)
