@@ -22,6 +22,7 @@ from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
 from flamerecon.machine import available_bytes, format_bytes
 from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
+from flamerecon.outputs.cameras_file import cameras_from_records, read_camera_file
 from flamerecon.scenes import Scene, SceneError
 
 if TYPE_CHECKING:
@@ -117,9 +118,9 @@ def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelG
             f"out in turn; with one it sees nothing the cameras leave open and predicts far too high a PSNR), "
             f"this run trains on {len(train)}; hold out fewer cameras (holdout=...), or leave uncertainty off")
     if options.calibration.file is not None:  # read (and refused) before any work, as the run reads it later
-        from flamerecon.fit.capture_calibration import file_cameras
-
-        file_cameras(options.calibration.file, scene, train)
+        path = options.calibration.file
+        cameras_from_records(read_camera_file(path)["cameras"], scene.views, scene.cameras.height,
+                             scene.cameras.width, f"calibration.file: {path}")
     check_scene(scene, grid)
     masks = scene.masks
     if masks is None:
