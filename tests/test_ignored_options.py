@@ -42,6 +42,9 @@ RUNS = {
         [*RUNG], ["solver.max_iters=5", "ladder.final_iterations=12"], 0,
         (r"ladder\.final_iterations=12: the run's own level solves 12 iterations after the ladder's rungs, not "
         r"solver\.max_iters=5"), 12),
+    "solver.max_iters given, a preset's ladder.iterations": (
+        [*RUNG, "solver.max_iters=3"], ["ladder.iterations=7"], 0,
+        r"ladder\.iterations: the preset's 7 set to null: solver\.max_iters=3, given on the command line, wins", 3),
     "both given: ladder.final_iterations holds on the run's own level": (
         [*RUNG, "solver.max_iters=3", "ladder.final_iterations=7"], [], 0, r"ladder\.final_iterations=7: ", 7),
     "solver.l1_rel given, a preset's select.auto": (

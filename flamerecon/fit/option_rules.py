@@ -552,6 +552,8 @@ def _selected(flat: Mapping) -> tuple[str, ...]:
 YIELDS = (
     Yield("ladder.final_iterations", None, lambda flat: ("solver.max_iters",),
           "sets the iterations of the run's own level once a ladder rung ran", False),
+    Yield("ladder.iterations", None, lambda flat: ("solver.max_iters",), "sets the iterations of each ladder rung",
+          False),
     Yield("select.auto", False, _selected, "chooses the solver's weights from select.candidates", True),
     Yield("holdout", None, lambda flat: ("scene.holdout",), "holds out its own views in place of the scene's", True),
     Yield("calibration.file", None, lambda flat: _FIT, "reads the cameras from the file in place of a camera fit",
