@@ -201,6 +201,7 @@ RULES: dict[str, Rule] = {
     "calibration.folder": Rule(text, null=True),
     "calibration.file": Rule(text, null=True),
     "calibration.score_before": Rule(boolean),
+    "calibration.min_gain": Rule(number(0, 1)),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),
