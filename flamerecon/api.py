@@ -38,8 +38,8 @@ from flamerecon.outputs.export import (
     UNCERTAINTY_FILE,
     Density,
     export_density,
-    recorded_conventions,
     load_density,
+    recorded_conventions,
     sigma_names,
 )
 from flamerecon.outputs.figures import _angles, orbit_cameras, write_png

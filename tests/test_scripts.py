@@ -145,8 +145,8 @@ CALLS = {
                                           "--static"], r"mean +3 density s=0.01 decay=1 .*\n.*static"),
     "operator_memory": (lambda t, run, dump: ["--grid", "8", *SYNTHETIC], r"operator: \d+ rays .* nonzeros \(estimate"),
     "plan_cameras": (lambda t, run, dump: [str(copied(run, t)), "--orbit", "6"],
-                     r"azimuth about \+y \(0 deg: \+z, 90 deg: \+x\).*\n.*relative error now at [0-9.]+.*\n"
-                     r"rank camera .*\n +1 orbit0\d +[0-9.]+° +-?[0-9.]+° +[0-9.]+% +[0-9.]+ "),
+                     (r"azimuth about \+y \(0 deg: \+z, 90 deg: \+x\).*\n.*relative error now at [0-9.]+.*\n"
+                      r"rank camera .*\n +1 orbit0\d +[0-9.]+° +-?[0-9.]+° +[0-9.]+% +[0-9.]+ ")),
     "preconditioning_study": (lambda t, run, dump: ["--grid", "8", "--iters", "20", "--variants", "lipschitz",
                                                     "--dump", str(dump)], r"lipschitz +"),
     "refine_cameras": (lambda t, run, dump: [*SYNTHETIC, "calibration.rounds=1", "--modes", "pose",

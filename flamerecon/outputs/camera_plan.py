@@ -74,8 +74,8 @@ def camera_plan_figure(up, box_corners, fitted: dict[str, np.ndarray], held: dic
         cv2.putText(image, label, (x, min(max(y + 4, TITLE_PX + 12), SIZE_PX + TITLE_PX - 4)), cv2.FONT_HERSHEY_SIMPLEX,
                     0.36, (170, 170, 170), 1, cv2.LINE_AA)
     for row, text in enumerate((title or "where to put the next camera (top view)",
-                                "dots: fitted cameras, squares: held out, circles: candidates (1 = best); "
-                                f"seen from above ({axis_name_of(up) or 'up'})")):
+                                ("dots: fitted cameras, squares: held out, circles: candidates (1 = best); "
+                                 f"seen from above ({axis_name_of(up) or 'up'})"))):
         cv2.putText(image, text, (6, 14 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42 if row == 0 else 0.36,
                     (255, 255, 255), 1, cv2.LINE_AA)
     ramp = np.linspace(top, 0.0, plot, dtype=np.float32)[:, None].repeat(12, 1)

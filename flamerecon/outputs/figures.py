@@ -20,7 +20,14 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import value, wrong_type, wrong_value
-from flamerecon.geometry.axes import UP_AXES, axis_index, axis_name, axis_sign, azimuth_zero, ground_directions
+from flamerecon.geometry.axes import (
+    UP_AXES,
+    axis_index,
+    axis_name,
+    axis_sign,
+    azimuth_zero,
+    ground_directions,
+)
 from flamerecon.geometry.units import display_length
 from flamerecon.outputs.atomic import atomic_path, atomic_write_bytes, write_errno
 from flamerecon.outputs.export import voxel_size
