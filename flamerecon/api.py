@@ -27,7 +27,7 @@ from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
 from flamerecon.fit.uncertainty_options import UncertaintyOptions
-from flamerecon.geometry.axes import up_vector
+from flamerecon.geometry.axes import ground_frame, up_vector
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import camera_rays, integrate_dense, render_image
@@ -38,11 +38,11 @@ from flamerecon.outputs.export import (
     UNCERTAINTY_FILE,
     Density,
     export_density,
-    recorded_conventions,
     load_density,
+    recorded_conventions,
     sigma_names,
 )
-from flamerecon.outputs.figures import _angles, azimuth_zero, orbit_cameras, write_png
+from flamerecon.outputs.figures import _angles, orbit_cameras, write_png
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.resources import config_dir
 from flamerecon.rules import integer, number
@@ -279,8 +279,7 @@ def framing_camera(result, azimuth_deg=0.0, elevation_deg: float = 15.0, width: 
     rotations = result.scene.cameras.extrinsics[:, :3, :3].double().cpu().numpy()
     up = np.asarray(up_vector(result.scene.up))
     toward = -rotations[0, 2, :]  # from the box towards the first camera
-    axis = azimuth_zero(up)
-    axis = (axis - (axis @ up) * up) / np.linalg.norm(axis - (axis @ up) * up)
+    axis = ground_frame(up)[0]
     azimuths = _angles("framing_camera.azimuth_deg", azimuth_deg)
     azimuths = azimuths + float(np.degrees(np.arctan2(toward @ np.cross(up, axis), toward @ axis)))
     probe = orbit_cameras(azimuths, elevation_deg, 1.0, target, width, height, fov_deg, up)

@@ -64,7 +64,7 @@ CASES = [
       for key, value in {"rounds": 2, "iterations": 2, "band_px": 2, "max_rays": 100, "prior_rotation_deg": 2.0,
                          "prior_translation": 0.1, "prior_focal": 0.1, "prior_principal_px": 2.0,
                          "fit_against": "others", "first_iterations": 5, "solve_iterations": 5,
-                         "seed": 1}.items()],
+                         "seed": 1, "min_gain": 0.1}.items()],
     (["calibration.resolution=8", "calibration.refine=pose"], None),
     (["export.iso=0.2"], "export.iso"),
     (["export.iso=0.2", "export=mesh"], None),

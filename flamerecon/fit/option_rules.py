@@ -201,6 +201,7 @@ RULES: dict[str, Rule] = {
     "calibration.folder": Rule(text, null=True),
     "calibration.file": Rule(text, null=True),
     "calibration.score_before": Rule(boolean),
+    "calibration.min_gain": Rule(number(0, 1)),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),
@@ -472,7 +473,7 @@ NEEDS: dict[str, Need] = {
                                   "a camera fit (calibration.refine=pose or pose+intrinsics)", True)
        for key in ("rounds", "iterations", "band_px", "max_rays", "prior_rotation_deg", "prior_translation",
                    "prior_focal", "prior_principal_px", "fit_against", "resolution", "frames", "first_iterations",
-                   "solve_iterations", "seed")},
+                   "solve_iterations", "seed", "min_gain")},
 }
 
 
@@ -536,7 +537,8 @@ class Yield:
 #: the options of a camera fit (what a calibration.file replaces)
 _FIT = tuple(f"calibration.{key}" for key in (
     "refine", "frames", "rounds", "iterations", "band_px", "max_rays", "prior_rotation_deg", "prior_translation",
-    "prior_focal", "prior_principal_px", "fit_against", "resolution", "first_iterations", "solve_iterations", "seed"))
+    "prior_focal", "prior_principal_px", "fit_against", "resolution", "first_iterations", "solve_iterations", "seed",
+    "min_gain"))
 
 
 def _selected(flat: Mapping) -> tuple[str, ...]:

@@ -79,19 +79,20 @@ def frame_list(text: str) -> list[int]:
     return frames
 
 
-def at_least(least: int) -> Callable[[str], int]:
-    """argparse type: an integer >= ``least``."""
+def at_least(least: int, most: int | None = None) -> Callable[[str], int]:
+    """argparse type: an integer >= ``least`` (and <= ``most`` when given)."""
+    want = f"an integer >= {least}" if most is None else f"an integer from {least} to {most}"
 
     def read(text: str) -> int:
         try:
             number = int(text)
         except ValueError:
             number = None
-        if number is None or number < least:
-            raise argparse.ArgumentTypeError(f"got '{text}'; give an integer >= {least}")
+        if number is None or number < least or (most is not None and number > most):
+            raise argparse.ArgumentTypeError(f"got '{text}'; give {want}")
         return number
 
-    read.__name__ = f"integer >= {least}"
+    read.__name__ = want.removeprefix("an ")
     return read
 
 
