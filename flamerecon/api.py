@@ -239,17 +239,19 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
 def view(result, port: int = 8080, host: str = "127.0.0.1", device: str = "auto"):
     """Serve ``result`` (a Reconstruction, a loaded Run, a run folder or a multirun folder) to a
     browser, as ``flamerecon view`` does, and return the :class:`~flamerecon.viewer.server.Viewer`
-    while it serves in the background: open its ``url``, call its ``stop()`` when done. Needs
-    ``pip install 'flamerecon[view]'``."""
+    while it serves in the background: open its ``url``, call its ``stop()`` when done. A host
+    that does not resolve or is not this machine's, or no free port from ``port`` on, is a
+    ConfigError before anything is served. Needs ``pip install 'flamerecon[view]'``."""
     instance("view.result", result, (Reconstruction, Run, str, os.PathLike),
              "a Reconstruction, a Run, or a run or multirun folder")
     value("view.port", port, integer(1, 65535))
     instance("view.host", host, str, "an address such as 127.0.0.1")
     instance("view.device", device, (str, torch.device), "a device name (auto, cpu, cuda)")
     resolve_device(device, "view.device")
+    from flamerecon.viewer.address import Fields
     from flamerecon.viewer.server import Viewer
 
-    viewer = Viewer(result, host, port, str(device))
+    viewer = Viewer(result, host, port, str(device), fields=Fields("view.host", "view.port"))
     print(f"flamerecon view: open {viewer.url}")
     return viewer
 
