@@ -35,7 +35,7 @@ from flamerecon.evaluate import pose_spread
 from flamerecon.fit import build, debias, pose_uncertainty, refine_cameras, weight_selection
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.pose_uncertainty import PoseOffset, capture_offsets, spread
-from flamerecon.fit.refine_cameras import CalibrationFrame, refine, with_cameras
+from flamerecon.fit.refine_cameras import CalibrationFrame, found_nothing, refine, with_cameras
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators import projector
@@ -70,15 +70,19 @@ class CaptureCalibration:
 
 
 def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
-                       device: torch.device, frame_of: Callable[[Scene], CalibrationFrame],
-                       choose: Callable[[PinholeCamera, list[Scene]], dict | None] | None = None
+                       device: torch.device, frame_of: Callable[[Scene, dict | None], CalibrationFrame],
+                       choose: Callable[[PinholeCamera, list[Scene], str], dict | None] | None = None
                        ) -> CaptureCalibration:
     """The training cameras ``train`` of ``scene`` refined over the frames
     ``options.calibration.frames`` of its capture (each loaded as :func:`load_frame` does and
-    turned into a :class:`CalibrationFrame` by ``frame_of``), read from the capture's
-    calibration file when it exists, else fitted and written there. ``choose(cameras, frames)``:
-    the selection record of the capture's solver weights, chosen on those frames with the
-    fitted cameras (None: none), kept in the file for every later frame."""
+    turned into a :class:`CalibrationFrame` by ``frame_of(frame, weights)``), read from the
+    capture's calibration file when it exists, else fitted and written there.
+    ``choose(cameras, frames, which)``: the selection record of the capture's solver weights,
+    chosen on those frames (None: none), first with the capture's own cameras (the weights of
+    the fit's densities), then, where the fit corrected the cameras, again with the fitted ones;
+    kept in the file for every later frame. A fit that found nothing to correct
+    (:func:`~flamerecon.fit.refine_cameras.found_nothing`) keeps the first choice: the cameras
+    it was made with stand."""
     frames = [load_frame(scene, t) for t in options.calibration.frames]  # refuses a scene without config
     images = {f"frame{t}": f.images[train] for t, f in zip(options.calibration.frames, frames)}
     others = [v for v in range(scene.num_views) if v not in train]  # their images measure their pose offsets
@@ -91,10 +95,12 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
     if stored is not None:
         return CaptureCalibration(file_cameras(path, scene, train), list(stored["history"]), "read", path,
                                   stored.get("selection"), file_offsets(path, scene.views))
-    fitting = [frame_of(f) for f in frames]
+    first = None if choose is None else choose(scene.cameras, frames, "the capture's own")
+    fitting = [frame_of(f, None if first is None else first["chosen"]) for f in frames]
     found = refine(cameras_to(scene.cameras, device), train, fitting, grid, options.calibration,
                    float(options.projector.step))
-    selection = None if choose is None else choose(found.cameras, frames)
+    selection = first if first is None or found_nothing(found.history) else choose(found.cameras, frames,
+                                                                                    "the fitted")
     records = camera_records(scene.views, cameras_to(found.cameras, "cpu"), train, calibrated=scene.cameras)
     offsets = capture_offsets(fitting, found.cameras, train, grid, options.calibration, float(options.projector.step),
                               options.calibration.frames)
