@@ -30,6 +30,7 @@ from flamerecon.fit.pose_uncertainty import (
 )
 from flamerecon.fit.refine_cameras import RefineOptions, corrected_cameras, with_cameras
 from flamerecon.geometry.cameras import camera_subset, project_points
+from flamerecon.run.summary import limiting_text
 from tests.helpers import CliRun
 
 SCENE = {"width": 48, "height": 36, "n_cameras": 5, "phantom_resolution": 32}
@@ -182,7 +183,9 @@ def test_a_capture_calibration_keeps_every_cameras_pose_uncertainty_and_the_run_
     metrics = json.loads((run / "metrics.json").read_text())
     u = metrics["uncertainty"]
     worst = max(u["poses"], key=lambda name: u["poses"][name]["pose_lost_db"])
-    assert u["limiting_camera"] == worst and re.search(rf"calibration limits +{worst}: ", done.stdout)
+    assert metrics["calibration"]["limiting_camera"] == worst
+    assert metrics["calibration"]["limiting_lost_db"] == pytest.approx(u["poses"][worst]["pose_lost_db"], rel=1e-5)
+    assert re.search(rf"calibration limits +{worst}: .* dB .*uncertain by", done.stdout)
     assert set(u["poses"]) == {r["name"] for r in records}
 
 
@@ -206,3 +209,11 @@ def test_the_poses_members_see_the_training_cameras_moved_and_are_not_scaled(sce
     assert one.groups.count("poses") == 2
     parts = one.variance_parts()
     torch.testing.assert_close(two.volume().pow(2), 4 * parts["cameras"] + parts["poses"], atol=1e-10, rtol=1e-4)
+
+
+def test_the_summary_names_the_camera_whose_pose_error_cost_most():
+    calibration = {"limiting_camera": "cam02", "limiting_lost_db": 4.47}
+    assert limiting_text(calibration, {}) == ("cam02: its pose error cost its images 4.47 dB on the calibration "
+                                              "frames, the most of any camera")
+    poses = {"cam02": {"pose_sigma_deg": 1.5, "pose_sigma_box_px": 3.25}}
+    assert "uncertain by 1.50 deg, 3.25 px at the box" in limiting_text(calibration, poses)

@@ -30,6 +30,7 @@ from flamerecon.evaluate.uncertainty import (
 from flamerecon.fit.build import scene_grid, split_views
 from flamerecon.fit.checks import check_density_fits
 from flamerecon.fit.options import ReconstructionOptions
+from flamerecon.fit.pose_uncertainty import offsets_of
 from flamerecon.fit.reconstruct import Reconstruction, mean_of
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.geometry.grid import VoxelGrid
@@ -100,7 +101,9 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
     With ``native_scene`` (the scene's options) the held-out views are also scored at the
     capture's native resolution (when the run works below it). ``calibration`` (see
     :func:`~flamerecon.fit.reconstruct.calibrated_scene`) is recorded with
-    ``train_psnr_after``, this density's training PSNR. ``warnings``: see
+    ``train_psnr_after``, this density's training PSNR, and with the cameras' pose offsets
+    (:mod:`flamerecon.fit.pose_uncertainty`) the camera whose pose error cost its images most
+    (``limiting_camera``, ``limiting_lost_db``). ``warnings``: see
     :func:`~flamerecon.evaluate.result_warnings.result_warnings` (``penalty``: its L1 weights)."""
     metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
     H, W = scene.image_size
@@ -116,6 +119,10 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
             metrics["resolution"]["native"] = list(size)
     if calibration:
         metrics["calibration"] = {**calibration, "train_psnr_after": mean_of(metrics["train"], "psnr")}
+        offsets = offsets_of(calibration)
+        if offsets:  # the camera whose pose error cost its images most: the calibration to distrust first
+            worst = max(offsets, key=lambda name: offsets[name].lost_db)
+            metrics["calibration"].update(limiting_camera=worst, limiting_lost_db=offsets[worst].lost_db)
     metrics["warnings"] = result_warnings(scene, volume, metrics, train + holdout, *penalty, train=train, step=step,
                                           bbox=(grid.bbox_min, grid.bbox_max))
     return metrics, held_imgs
@@ -134,7 +141,7 @@ def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_
     """uncertainty.npz (:func:`~flamerecon.evaluate.uncertainty.save_confidence`), each held-out
     view's ``psnr_predicted`` in ``metrics`` (its pose uncertainty included), its ``uncertainty``
     record (members, scale, shift, seconds; with the cameras' pose uncertainty, ``poses`` per
-    camera and ``limiting_camera``) and the TensorBoard images ``uncertainty/<view>`` (render |
+    camera) and the TensorBoard images ``uncertainty/<view>`` (render |
     captured | error | predicted sigma); returns the held-out confidence images (V, C, H, W), in
     image units."""
     scene, setup = rec.scene, rec.setup
@@ -152,7 +159,7 @@ def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_
     metrics["uncertainty"] = {"members": conf.labels, "scale": conf.scale, "shift_voxels": conf.shift_voxels,
                               "seconds": conf.seconds + time.perf_counter() - clock}
     if conf.poses is not None:
-        metrics["uncertainty"].update(poses=conf.poses.records(), limiting_camera=conf.poses.limiting())
+        metrics["uncertainty"]["poses"] = conf.poses.records()
     return sigma
 
 

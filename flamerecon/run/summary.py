@@ -30,8 +30,6 @@ def summary_table(metrics: dict) -> str:
         note = (f"by the confidence: {len(u.get('members', []))} members + shifts of "
                 f"{u.get('shift_voxels', 0):g} voxel, {u.get('seconds', 0.0):.1f} s; uncertainty.npz")
         rows.append(("  predicted [dB]", f"{mean_of(metrics['heldout'], 'psnr_predicted'):.2f}  ({note})"))
-        if u.get("limiting_camera"):
-            rows.append(("  calibration limits", limiting_text(u)))
     if held and "psnr_silhouette" in held[0]:
         rows.append(("  inside silhouettes [dB]", psnr_text(metrics["heldout"], "psnr_silhouette",
                                                             "psnr_black_silhouette")))
@@ -66,6 +64,8 @@ def summary_table(metrics: dict) -> str:
             f"training {c['train_psnr_after']:.2f} dB (calibration.score_before=true: also with the "
             "capture's own cameras, one more solve)")))
         rows.append(("  cameras", calibration_source(c)))
+        if c.get("limiting_camera"):
+            rows.append(("  calibration limits", limiting_text(c, metrics.get("uncertainty", {}).get("poses", {}))))
         if found_nothing(c.get("rounds") or []):
             rows.append(("  found", (f"nothing to correct: {c['rounds'][0]['stopped']}; the capture's cameras "
                                      "are kept (calibration.refine=none skips the fit)")))
@@ -100,14 +100,17 @@ def summary_table(metrics: dict) -> str:
     return "\n".join([f"  {k:<{width}}  {v}" for k, v in rows] + warnings_block(metrics.get("warnings", [])))
 
 
-def limiting_text(u: dict) -> str:
-    """The camera whose pose error cost its images the most (metrics.json's
-    ``uncertainty.limiting_camera``), with its figures."""
-    name = u["limiting_camera"]
-    r = u["poses"][name]
-    return (f"{name}: its pose error cost its images {r['pose_lost_db']:.2f} dB where it was measured, the "
-            f"most of any camera (uncertain by {r['pose_sigma_deg']:.2f} deg, {r['pose_sigma_box_px']:.2f} px at the "
-            "box; every camera's in metrics.json uncertainty.poses)")
+def limiting_text(c: dict, poses: dict) -> str:
+    """The camera whose pose error cost its images most (metrics.json's
+    ``calibration.limiting_camera``), with its pose uncertainty when the confidence has it."""
+    name = c["limiting_camera"]
+    text = (f"{name}: its pose error cost its images {c['limiting_lost_db']:.2f} dB on the calibration frames, the "
+            "most of any camera")
+    if name in poses:
+        r = poses[name]
+        text += (f"; uncertain by {r['pose_sigma_deg']:.2f} deg, {r['pose_sigma_box_px']:.2f} px at the box "
+                 "(every camera's in metrics.json uncertainty.poses)")
+    return text
 
 
 def psnr_text(per_view: dict, key: str, black: str | None, note: str = "") -> str:
