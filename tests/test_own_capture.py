@@ -5,11 +5,9 @@ few degrees, a box too small and a pose given the wrong way round."""
 
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,19 +16,17 @@ from kornia.geometry.camera import PinholeCamera
 
 import flamerecon as fr
 from flamerecon.evaluate.capture_check import check_capture, check_figure
-from flamerecon.geometry.cameras import opencv_w2c_to_opengl_c2w
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.convert import colmap_to_opencv, pinf_to_opencv, write_calibration
 from tests.helpers import REPO, repo_env
 from tests.helpers.views import (
     BOX,
-    HEIGHT,
     NAMES,
-    WIDTH,
     centred_K,
     random_images,
     ring_cameras,
-    write_png,
+    write_colmap,
+    write_pinf,
 )
 
 EXAMPLE = REPO / "examples" / "capture"
@@ -76,27 +72,10 @@ def test_the_example_is_the_synthetic_flame_as_its_own_capture():
 # --- converters -------------------------------------------------------------------------------
 
 
-def write_pinf(folder: Path, images: np.ndarray) -> None:
-    """A PINF info.json capture of the ring cameras (two held out), frames NAME/000000.png."""
-    w2c = ring_cameras(len(NAMES))
-    angle = 2 * math.atan(0.5 * WIDTH / centred_K()[0, 0])
-    entries = [{"file_name": f"{name}.mp4", "camera_hw": [HEIGHT, WIDTH], "camera_angle_x": angle,
-                "transform_matrix": opencv_w2c_to_opengl_c2w(w2c[v]).double().tolist()} for v, name in enumerate(NAMES)]
-    for v, name in enumerate(NAMES):
-        write_png(folder / name / "000000.png", images[v])
-    scale = np.subtract(BOX[1], BOX[0])
-    matrix = np.eye(4)
-    matrix[:3, 3] = BOX[0]
-    matrix = matrix[:, [2, 1, 0, 3]]  # PINF's column swap, undone by its loader
-    info = {"train_videos": entries[:2], "test_videos": entries[2:], "voxel_matrix": matrix.tolist(),
-            "voxel_scale": scale[[2, 1, 0]].tolist()}
-    (folder / "info.json").write_text(json.dumps(info))
-
-
 def test_pinf_converted_loads_as_the_pinf_loader_loads_it(tmp_path):
     write_pinf(tmp_path / "pinf", random_images(len(NAMES), 3))
     out = tmp_path / "converted" / "calibration.yaml"
-    record = pinf_to_opencv(tmp_path / "pinf" / "info.json", out)
+    record = pinf_to_opencv(tmp_path / "pinf" / "info.json", out).record
     write_calibration(out, record, "test")
     pinf = fr.load_scene("pinf", root=str(tmp_path / "pinf"))
     converted = fr.load_scene("opencv", root=str(out.parent))
@@ -118,32 +97,6 @@ def test_scalarflow_converted_is_scalarflow(tmp_path):
     assert converted.default_holdout == ["train02"] and converted.bbox_min == pinf.bbox_min
 
 
-def rotation_quaternion(R: np.ndarray) -> list[float]:
-    """(w, x, y, z) by scipy, independent of the converter's own quaternion code."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return [float(w), float(x), float(y), float(z)]
-
-
-def write_colmap(folder: Path, images: np.ndarray, model: str = "PINHOLE", params: str | None = None) -> Path:
-    """A COLMAP text model of the ring cameras (pixel centres at +0.5, as flamerecon's K) and
-    its images in folder/images/; returns the model folder."""
-    K = centred_K()
-    params = params or f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}"
-    model_dir = folder / "sparse" / "0"
-    model_dir.mkdir(parents=True)
-    (model_dir / "cameras.txt").write_text(f"# Camera list\n1 {model} {WIDTH} {HEIGHT} {params}\n")
-    lines = ["# Image list with two lines of data per image:"]
-    for v, w2c in enumerate(ring_cameras(len(NAMES)).numpy()):
-        q = rotation_quaternion(w2c[:3, :3])
-        lines += [f"{v + 1} {' '.join(map(repr, q))} {' '.join(map(repr, w2c[:3, 3].tolist()))} 1 {NAMES[v]}.png",
-                  "12.5 3.5 -1" if v % 2 else ""]
-        write_png(folder / "images" / f"{NAMES[v]}.png", images[v])
-    (model_dir / "images.txt").write_text("\n".join(lines) + "\n")
-    return model_dir
-
-
 def test_colmap_converted_has_the_cameras_written(tmp_path):
     model = write_colmap(tmp_path, random_images(len(NAMES), 3))
     proc = script("convert_capture.py", "colmap", model, tmp_path / "out" / "calibration.yaml",
@@ -158,7 +111,7 @@ def test_colmap_converted_has_the_cameras_written(tmp_path):
 
 def test_colmap_distortion_goes_into_opencvs_order(tmp_path):
     model = write_colmap(tmp_path, random_images(len(NAMES)), "OPENCV", "45 46 20.5 16.5 0.1 -0.02 0.001 0.002")
-    record = colmap_to_opencv(model, tmp_path / "images", tmp_path / "calibration.yaml")
+    record = colmap_to_opencv(model, tmp_path / "images", tmp_path / "calibration.yaml").record
     camera = record["cameras"][0]
     assert camera["dist"] == [0.1, -0.02, 0.001, 0.002]
     assert camera["K"] == [[45.0, 0.0, 20.0], [0.0, 46.0, 16.0], [0.0, 0.0, 1.0]]  # OpenCV's pixel convention
@@ -168,7 +121,7 @@ def test_colmap_distortion_goes_into_opencvs_order(tmp_path):
 @pytest.mark.parametrize("cameras, images, message", [
     ("1 FISHEYE 40 32 1 2 3", None, r"cameras.txt: line 1: camera model FISHEYE is not supported"),
     ("1 PINHOLE 40 32 45 45 20", None, r"cameras.txt: line 1: PINHOLE takes 4 parameters \(fx fy cx cy\), got 3"),
-    ("1 PINHOLE 40 32 45 45 20 x", None, r"cameras.txt: line 1: WIDTH HEIGHT PARAMS: expected numbers"),
+    ("1 PINHOLE 40 32 45 45 20 x", None, r"cameras.txt: line 1: PARAMS: expected numbers"),
     ("1 PINHOLE 40 32 45 45 20 16", "1 1 0 0 0 0 0 3 7 a.png\n", r"images.txt: line 1: CAMERA_ID 7 is not in"),
     ("1 PINHOLE 40 32 45 45 20 16", "1 1 0 0 0 0 0 3 1 a.png\n\n2 1 0 0 0 0 0 3 1 a.png\n",
      r"images.txt: line 3: camera name 'a' \(the image's stem\) appears twice"),
