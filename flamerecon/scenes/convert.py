@@ -336,8 +336,6 @@ def check_output(path: Path, conversion: Conversion, force: bool) -> None:
     """Refuse, before anything is written, an output that is one of the converter's inputs (an
     input file or image, even with ``force``), an existing file without ``force``, or a frame
     folder NAME beside it that holds anything but links (links are replaced with ``force``)."""
-    if path.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise SceneError(f"{path}: the converter writes YAML; name the file .yaml or .yml (e.g. OUT/calibration.yaml)")
     target = path.resolve()
     used = [*conversion.inputs, *(f for frames in conversion.links.values() for f in frames.values())]
     used += [path.parent / c["image"] for c in conversion.record["cameras"] if c["name"] not in conversion.links]
@@ -345,6 +343,8 @@ def check_output(path: Path, conversion: Conversion, force: bool) -> None:
         if Path(source).resolve() == target:
             raise SceneError(f"{path}: is the converter's own input ({source}); write the calibration elsewhere, "
                              "e.g. OUT/calibration.yaml")
+    if path.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise SceneError(f"{path}: the converter writes YAML; name the file .yaml or .yml (e.g. OUT/calibration.yaml)")
     if path.exists() and not force:
         raise SceneError(f"{path}: exists; give --force to replace it, or another file name")
     for name in conversion.links:

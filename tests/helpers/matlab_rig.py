@@ -49,7 +49,9 @@ def opencv_cameras() -> list[dict]:
         azimuth = 2 * math.pi * i / len(NAMES) + 0.2
         height = 66.0 + 40.0 * (-1) ** i
         eye = torch.tensor([620.0 * math.cos(azimuth), 620.0 * math.sin(azimuth), height])
-        w2c = look_at(eye, torch.tensor([0.0, 0.0, 66.0]), up=(0.0, 0.0, -1.0))[0].double()  # image-down: +z
+        w2c = look_at(eye, torch.tensor([0.0, 0.0, 66.0]), up=(0.0, 0.0, -1.0))[0].double().numpy()  # down: +z
+        u, _, vt = np.linalg.svd(w2c[:3, :3])  # orthonormal in float64, not only to float32's precision
+        w2c[:3, :3] = u @ vt
         fx = 360.0 + 7.5 * i
         K = [[fx, 0.0, 47.3 + 0.4 * i], [0.0, fx * 1.002, 47.8 - 0.3 * i], [0.0, 0.0, 1.0]]
         dist = [-0.04 + 0.01 * i, 0.012, 0.0008 * (i - 3), -0.0005, 0.002 * (i % 2)]
