@@ -6,19 +6,25 @@ few degrees, a box too small and a pose given the wrong way round."""
 from __future__ import annotations
 
 import math
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import yaml
 from kornia.geometry.camera import PinholeCamera
 
 import flamerecon as fr
 from flamerecon.evaluate.capture_check import check_capture, check_figure
+from flamerecon.geometry.cameras import opencv_w2c_to_opengl_c2w
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.convert import colmap_to_opencv, pinf_to_opencv, write_calibration
 from tests.helpers import REPO, repo_env
+from tests.helpers.matlab_rig import BOX as RIG_BOX
+from tests.helpers.matlab_rig import write_rig
 from tests.helpers.views import (
     BOX,
     NAMES,
@@ -163,12 +169,53 @@ def test_the_check_passes_the_example_and_finds_a_turned_camera():
 def test_the_check_finds_a_small_box_and_an_inverted_pose():
     scene = fr.load_scene("opencv", root=str(EXAMPLE))
     small, _, _ = check_capture(scene, SILHOUETTE, bbox=[[-0.2, 0.3, -0.2], [0.2, 0.9, 0.2]])
-    assert all(any("outside the box's outline" in p for p in c.problems) for c in small)
+    assert all(any("outside the box's outline: enlarge the box" in p for p in c.problems) for c in small)
     extrinsics = scene.cameras.extrinsics.clone()
     extrinsics[1:3] = torch.linalg.inv(extrinsics[1:3])  # camera->world given where world->camera belongs
     inverted, _, _ = check_capture(with_cameras(scene, extrinsics), SILHOUETTE)
     assert "does not see the box" in inverted[1].problems[0] and "behind it" in inverted[2].problems[0]
     assert all("x_cam = R x_world + t" in c.problems[0] for c in inverted[1:3])
+
+
+def test_each_pose_hint_names_the_convention_it_fixes(tmp_path):
+    """On the MATLAB rig: a pose given camera->world is told to invert, one with OpenGL's axes
+    to invert and flip, a MATLAB postmultiply one to transpose R only (inverting would break it)."""
+    rig = write_rig(tmp_path, rendered=True, frames=(0,))
+    scene = fr.load_scene("opencv", root=str(rig["reference"].parent), bbox=[list(b) for b in RIG_BOX])
+    assert not [p for c in check_capture(scene, SILHOUETTE)[0] for p in c.problems]
+    extrinsics = scene.cameras.extrinsics.clone()
+    extrinsics[1] = torch.linalg.inv(extrinsics[1])
+    extrinsics[2] = opencv_w2c_to_opengl_c2w(extrinsics[2])
+    extrinsics[4, :3, :3] = extrinsics[4, :3, :3].T.clone()  # x_cam = x_world * R + t
+    checks, _, _ = check_capture(with_cameras(scene, extrinsics), SILHOUETTE)
+    said = {c.name: c.problems[0] for c in checks if c.problems}
+    assert "camera->world (Blender, NeRF without their axes)" in said["cam2"] and "invert it" in said["cam2"]
+    assert "with OpenGL's axes" in said["cam3"] and "flip its y and z" in said["cam3"]
+    assert "MATLAB's postmultiply rotation" in said["cam5"] and "transpose R only" in said["cam5"]
+    assert "enlarge the box" not in said["cam5"] and "invert" not in said["cam5"]
+
+
+def without_box(folder: Path) -> Path:
+    """A copy of the example capture whose calibration file gives no box."""
+    shutil.copytree(EXAMPLE, folder)
+    calibration = yaml.safe_load((folder / "calibration.yaml").read_text())
+    del calibration["bbox"]
+    (folder / "calibration.yaml").write_text(yaml.safe_dump(calibration))
+    return folder
+
+
+def test_a_box_the_loader_estimated_is_not_blamed_on_the_capture(tmp_path):
+    """Without a box the loader estimates one from the silhouettes: by default from masks like the
+    fit's, so that it holds them; estimated from narrower ones (Otsu's), the check puts the
+    silhouette outside it down to that estimate, not to a box the user never gave."""
+    capture = without_box(tmp_path / "capture")
+    checks, _, _ = check_capture(fr.load_scene("opencv", root=str(capture)), SILHOUETTE)
+    assert not [p for c in checks for p in c.problems]
+    narrow = fr.load_scene("opencv", root=str(capture), silhouette={"method": "otsu", "dilate_px": 2})
+    assert narrow.meta["bbox_source"] == "silhouette cones"
+    problems = [p for c in check_capture(narrow, SILHOUETTE)[0] for p in c.problems]
+    assert problems and all("the box the loader estimated (from scene.silhouette's masks)" in p for p in problems)
+    assert not any("enlarge the box" in p for p in problems)
 
 
 @pytest.mark.e2e
@@ -177,3 +224,17 @@ def test_the_check_script_prints_a_table_and_writes_its_picture(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "no problem found" in proc.stdout and "hull IoU" in proc.stdout
     assert (tmp_path / "capture_check.png").is_file()
+
+
+@pytest.mark.e2e
+def test_the_check_script_exits_1_on_a_problem_and_writes_beside_the_capture(tmp_path):
+    capture = tmp_path / "capture"
+    shutil.copytree(EXAMPLE, capture)
+    calibration = yaml.safe_load((capture / "calibration.yaml").read_text())
+    calibration["bbox"] = [[-0.2, 0.3, -0.2], [0.2, 0.9, 0.2]]  # too small
+    (capture / "calibration.yaml").write_text(yaml.safe_dump(calibration))
+    proc = script("check_capture.py", "scene=opencv", f"scene.root={capture}")
+    assert proc.returncode == 1, proc.stderr
+    assert "PROBLEMS (" in proc.stdout and proc.stdout.count("enlarge the box") == 5
+    assert f"picture: {capture / 'check' / 'capture_check.png'}" in proc.stdout
+    assert (capture / "check" / "capture_check.png").is_file() and not (REPO / "outputs" / "check").exists()

@@ -110,15 +110,16 @@ def matlab_camera(cam: dict, convention: str) -> dict:
     return entry
 
 
-def write_rig(folder: Path, rendered: bool = True) -> dict[str, Path]:
+def write_rig(folder: Path, rendered: bool = True, frames: tuple[int, ...] = FRAMES) -> dict[str, Path]:
     """Write the rig into ``folder``: ``frames/`` (the flat folder), ``matlab_pre.json`` and
     ``matlab_post.json`` (the calibration in each convention) and ``reference/`` (the same rig
     in scene=opencv's format by hand: calibration.yaml and NAME/NNNNNN.png). Returns the paths.
-    Without ``rendered`` the images are blank (quick, for tests of the calibration alone)."""
+    Without ``rendered`` the images are blank (quick, for tests of the calibration alone).
+    ``frames``: which frames (each 5 s to render)."""
     cameras = opencv_cameras()
     flat, reference = folder / "frames", folder / "reference"
     flat.mkdir(parents=True)
-    for frame in FRAMES:
+    for frame in frames:
         images = render(cameras, frame) if rendered else np.zeros((len(cameras), SIZE, SIZE), np.uint16)
         for cam, image in zip(cameras, images):
             assert cv2.imwrite(str(flat / PATTERN.format(camera=cam["name"], frame=frame)), image)
