@@ -470,15 +470,16 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     # with the gain), so they keep the penalised structure, only its level debiased
     fitting = options.replace(debias=DebiasOptions("gain")) if options.debias.method == "refit" else options
 
-    def capture_choice(cameras, sources: list[Scene]) -> dict | None:
+    def capture_choice(cameras, sources: list[Scene], which: str) -> dict | None:
         """With select.auto: the selection record of the weights whose leave-one-view-out
-        PSNR, averaged over the calibration frames ``sources`` solved with the fitted
-        ``cameras``, is best (chosen with the capture's own cameras, in the fit's first solves,
-        the weights run stronger: the cameras' errors look like noise); None when off."""
+        PSNR, averaged over the calibration frames ``sources`` solved with ``cameras`` (``which``:
+        the capture's own, for the fit's densities, then the fitted ones: chosen with the
+        capture's own cameras the weights run stronger, as the cameras' errors look like noise),
+        is best; None when off."""
         if options.select.for_solver(options.solver.name) is None:
             return None
         tables = []
-        progress = Progress("the capture's weights on its calibration frames, with the fitted cameras", len(sources),
+        progress = Progress(f"the capture's weights on its calibration frames, with {which} cameras", len(sources),
                             "frame")
         for source in sources:
             fitted = replace(source, cameras=cameras_to(cameras, "cpu"))
@@ -491,19 +492,21 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         best = max(range(len(table)), key=lambda k: table[k]["psnr"])
         return {"chosen": dict(table[best]["overrides"]), "candidates": table, "frames": [int(f) for f in frames]}
 
-    def frame_of(source: Scene) -> CalibrationFrame:
+    def frame_of(source: Scene, weights: dict | None = None) -> CalibrationFrame:
+        """The camera fit's view of frame ``source``: its densities solved with ``weights`` (the
+        capture's, chosen on every calibration frame), else with the weights select.auto
+        chooses in the frame's first solve."""
         images = source.images.to(device)
-        chosen: list[dict] = []  # the weights select.auto chose for the frame's first solve
+        chosen: list[dict] = [] if weights is None else [weights]  # the weights select.auto chose, or given
 
         def solve_density(views: list[int], cameras, start: torch.Tensor | None) -> torch.Tensor:
             fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
-            if start is not None and chosen:  # weights are chosen once per frame, not at every round
+            if chosen:  # weights are chosen once per frame (or given), not at every solve
                 fold = fold.replace(solver=fold.solver.with_values(**chosen[0]), select=replace(fold.select, auto=False))
             budget = refining.first_iterations if start is None else refining.solve_iterations
             if budget is not None and "max_iters" in fold.solver.params:
                 fold = fold.replace(solver=fold.solver.with_values(max_iters=budget))
-            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid,
-                          scored=False)
+            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid)
             x0 = None if start is None else hull_values(start, grid, setup.voxel_index)
             fitted = fit(setup, fold, x0)
             if start is None and not chosen and fitted.selection is not None:
