@@ -115,3 +115,9 @@ def test_train_py_reconstructs_with_mart(tmp_path):
     result = CliRun(tmp_path / "run", "solver=mart", "solver.max_iters=10", "log.eval_every=0").result()
     assert result.returncode == 0, result.stderr
     assert "mart" in result.stdout and (tmp_path / "run" / "density.npz").is_file()
+
+
+def test_rays_that_share_voxels_too_densely_are_refused_not_swept_one_by_one():
+    A = np.ones((4100, 3), np.float32)  # every ray through every voxel: one ray a block
+    with pytest.raises(ConfigError, match=r"solver=mart: the rays share voxels too densely .* use a finer grid"):
+        make_solver("mart").solve(Problem(csr(A), torch.ones(4100, 1)))
