@@ -82,6 +82,16 @@ def pattern(text: str) -> ImagePattern:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
+def joined_axis(argv: list[str]) -> list[str]:
+    """``--up -z`` as ``--up=-z``: argparse reads a value that starts with '-' as an option."""
+    out, i = [], 0
+    while i < len(argv):
+        joined = argv[i] == "--up" and i + 1 < len(argv) and argv[i + 1] in UP_AXES
+        out.append(f"--up={argv[i + 1]}" if joined else argv[i])
+        i += 2 if joined else 1
+    return out
+
+
 def unit_said(given: float | None, named: str | None) -> str:
     """What the summary says of the unit: given, or how to give it (with the input's own name
     of its unit, e.g. MATLAB's WorldUnits 'mm', which is a label and may be MATLAB's default)."""
@@ -108,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--unit", type=unit, help="metres per world unit, written as the file's `unit`")
     parser.add_argument("--up", choices=UP_AXES, help="the world axis pointing up, written as the file's `up`")
     parser.add_argument("--force", action="store_true", help="replace an existing output file")
-    args = parser.parse_args(argv)
+    args = parser.parse_args(joined_axis(sys.argv[1:] if argv is None else argv))
     if args.source == "pinf" and (args.images or args.pattern):
         parser.error("--images and --pattern are for colmap and matlab (pinf's info.json names each camera's "
                      "video)")

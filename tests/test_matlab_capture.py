@@ -388,3 +388,21 @@ def test_a_mat_file_without_scipy_says_how_to_install_it(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "scipy.io", None)  # as where scipy is not installed
     with pytest.raises(SceneError, match=r"rig\.mat: reading a MAT-file needs scipy: pip install 'flamerecon\[matlab\]'"):
         matlab_to_opencv(tmp_path / "rig.mat", tmp_path, tmp_path / "out.yaml")
+
+
+def test_a_colmap_model_of_a_video_rig_maps_its_flat_folder_by_pattern(tmp_path):
+    """COLMAP calibrated one frame of each camera (cam00_t0000.png ...): --pattern names the
+    camera by {camera} and links every frame of it found in the flat folder."""
+    d = capture(tmp_path)
+    for name in ["cam00", "cam01", "cam02", "cam03"]:
+        edit(d["model"] / "images.txt", f" {name}.png", f" {name}_t0000.png")
+        (d["images"] / f"{name}.png").rename(d["images"] / f"{name}_t0000.png")
+        (d["images"] / f"{name}_t0001.png").write_bytes((d["images"] / f"{name}_t0000.png").read_bytes())
+    proc = convert("colmap", d["model"], tmp_path / OUT, "--pattern", PATTERN, "--unit", "0.001", "--up", "-y")
+    assert proc.returncode == 0, proc.stderr
+    record = yaml.safe_load((tmp_path / OUT).read_text())
+    assert [c["name"] for c in record["cameras"]] == ["cam00", "cam01", "cam02", "cam03"]
+    assert (record["unit"], record["up"]) == (0.001, "-y")
+    assert sorted(p.name for p in (tmp_path / "out" / "cam02").iterdir()) == ["000000.png", "000001.png"]
+    scene = fr.load_scene("opencv", root=str(tmp_path / "out"), frame=1, bbox=[[-1, -1, -1], [1, 1, 1]])
+    assert scene.views == ["cam00", "cam01", "cam02", "cam03"]
