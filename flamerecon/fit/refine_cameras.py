@@ -33,7 +33,7 @@ respect to the corrections, in closed form (:func:`ray_tangents`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
 import torch
@@ -60,10 +60,12 @@ from flamerecon.progress import Progress
 N_PARAMS = 9
 
 
-def auto_frames(length: int) -> tuple[int, ...]:
-    """``calibration.frames: auto`` for a capture of ``length`` frames: the frames at 2/5 and
-    14/15 of it (30 and 69 of 75), the one frame of a capture of one."""
-    return tuple(sorted({round(f * (length - 1)) for f in (0.4, 14 / 15)}))
+def auto_frames(numbers: Sequence[int]) -> tuple[int, ...]:
+    """``calibration.frames: auto`` for a capture whose cameras hold the frame ``numbers`` (in
+    order): those at 2/5 and 14/15 of the list (30 and 69 of 0-74; 51 and 53 of 50, 51, 53),
+    the one frame of a capture of one."""
+    numbers = list(numbers)
+    return tuple(sorted({numbers[round(f * (len(numbers) - 1))] for f in (0.4, 14 / 15)}))
 
 
 @dataclass(frozen=True)
@@ -153,9 +155,9 @@ class RefineOptions:
             raise ArgumentError("calibration.rig: needs calibration.frames (the frames the rig is fitted to, none "
                                 "of them scored); set calibration.frames=[...] or calibration.rig=false")
 
-    def for_capture(self, length: int) -> RefineOptions:
-        """These options with ``frames: auto`` resolved for a capture of ``length`` frames."""
-        return replace(self, frames=auto_frames(length)) if self.frames == "auto" else self
+    def for_capture(self, numbers: Sequence[int]) -> RefineOptions:
+        """These options with ``frames: auto`` resolved for a capture holding the frame ``numbers``."""
+        return replace(self, frames=auto_frames(numbers)) if self.frames == "auto" else self
 
     @property
     def active(self) -> list[int]:

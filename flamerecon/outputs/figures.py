@@ -20,7 +20,14 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import value, wrong_type, wrong_value
-from flamerecon.geometry.axes import UP_AXES, axis_index, axis_name, axis_sign, ground_directions, turn_from_y
+from flamerecon.geometry.axes import (
+    UP_AXES,
+    axis_index,
+    axis_name,
+    axis_sign,
+    azimuth_zero,
+    ground_directions,
+)
 from flamerecon.geometry.units import display_length
 from flamerecon.outputs.atomic import atomic_path, atomic_write_bytes, write_errno
 from flamerecon.outputs.export import voxel_size
@@ -568,16 +575,6 @@ def support_box(density, bbox_min, bbox_max, threshold: float = 0.01) -> tuple[n
     first = np.array([i.min(), j.min(), k.min()])
     last = np.array([i.max(), j.max(), k.max()]) + 1
     return lo + first * size, lo + last * size
-
-
-def azimuth_zero(up: np.ndarray) -> np.ndarray:
-    """The world direction (3,) of an orbit's azimuth 0 about the unit vector ``up``: for up
-    within a degree of a world axis, +z turned by :func:`~flamerecon.geometry.axes.turn_from_y`;
-    else the world axis most perpendicular to ``up`` (ties to z, then x, then y)."""
-    index = int(np.abs(up).argmax())
-    if abs(up[index]) > math.cos(math.radians(1.0)):
-        return turn_from_y(("+" if up[index] > 0 else "-") + "xyz"[index]).numpy()[:, 2].copy()
-    return np.eye(3)[min((2, 0, 1), key=lambda a: abs(up[a]))]
 
 
 # ---------------------------------------------------------------------------------------------

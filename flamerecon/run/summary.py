@@ -65,8 +65,8 @@ def summary_table(metrics: dict) -> str:
             "capture's own cameras, one more solve)")))
         rows.append(("  cameras", calibration_source(c)))
         if found_nothing(c.get("rounds") or []):
-            rows.append(("  found", f"nothing to correct: {c['rounds'][0]['stopped']}; the capture's cameras are "
-                                    "kept (calibration.refine=none skips the fit)"))
+            rows.append(("  found", (f"nothing to correct: {c['rounds'][0]['stopped']}; the capture's cameras "
+                                     "are kept (calibration.refine=none skips the fit)")))
         else:
             rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "
                                     f"focal x{r['focal_scale']:.4f}, principal point "
