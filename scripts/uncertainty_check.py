@@ -14,7 +14,8 @@ entered it (no pose spread; at ``--scale-before``, default ``uncertainty.scale``
 holds out every camera in turn (leave-one-view-out) instead of the run's held-out ones, and
 prints per frame the rank correlation of the views' predicted PSNR with their measured one.
 With a scene whose cameras were given off from those that rendered it (``scene=synthetic_flame``
-with a camera fit), each camera's true pose error against its reported sigma. Writes
+with a camera fit), each camera's true pose error against its reported sigma; with one that adds
+known sensor noise (the synthetic scenes), the coverage against its noiseless images too. Writes
 FILE.json: ``{"frames": {"65": {"spearman", "spearman_trivial", "coverage_1sigma",
 "coverage_2sigma", "psnr", "psnr_predicted", "psnr_predicted_before", ..., "views": {view: the
 same}}}, "scale_fit", "config"}`` (a frame's figures are the mean over its held-out views), and
@@ -105,10 +106,32 @@ def check_split(scene, options, views: list[int] | None, scale_before: float | N
                                "unscaled_variance": float(unscaled[k].double().mean()),
                                "pose_variance": float(pose_variance[k].double().mean()),
                                **pose_figures(conf, scene.views[v]), **volume}
+    for name, figures in noiseless_figures(rec, rendered, sigma, domain).items():
+        out[name].update(figures)
     truth = pose_truth(rec, conf)  # one per fold: the cameras of this run
     if truth:
         out[scene.views[rec.setup.holdout[0]]]["poses_truth"] = truth
     return out, {"run": run_seconds, "confidence": confidence_seconds, "members": conf.seconds}
+
+
+def noiseless_figures(rec, rendered: torch.Tensor, sigma: torch.Tensor, domain: torch.Tensor) -> dict[str, dict]:
+    """With a scene that adds known sensor noise to its images (the synthetic scenes'
+    ``scene.noise``), per held-out view (``rendered``, ``sigma`` (V, C, H, W), ``domain`` (V, H,
+    W) as :func:`check_split` has them) the 1- and 2-sigma coverage and the PSNR against its
+    noiseless images (``*_noiseless``), the same cameras: how much of the miss is the sensor's
+    noise, which the confidence does not model (a diagnosis); {} for any other scene."""
+    scene = rec.scene
+    if not scene.meta.get("noise") or "config" not in scene.meta:
+        return {}
+    clean = load_scene({**scene.meta["config"], "noise": 0.0})
+    if clean.images.shape != scene.images.shape:
+        return {}
+    out = {}
+    for k, v in enumerate(rec.setup.holdout):
+        found = check_view(scene.to_recorded(rendered[k]), clean.recorded_view(v),
+                           recorded_sigma(scene, rendered[k], sigma[k]), domain[k])
+        out[scene.views[v]] = {f"{key}_noiseless": found[key] for key in ("coverage_1sigma", "coverage_2sigma", "psnr")}
+    return out
 
 
 def pose_figures(conf, view: str) -> dict[str, float]:
@@ -240,6 +263,10 @@ def main(argv: list[str] | None = None) -> int:
                 for name, r in found.items():
                     fits.append(exact_scale(r))
                     print(line(frame, name, r, f"{seconds['run']:.1f} + {seconds['confidence']:.1f}"), flush=True)
+                    if "coverage_2sigma_noiseless" in r:
+                        print(f"      {name} against its noiseless images: coverage 1/2 sigma "
+                              f"{r['coverage_1sigma_noiseless']:.3f}/{r['coverage_2sigma_noiseless']:.3f}, PSNR "
+                              f"{r['psnr_noiseless']:.2f}", flush=True)
             entry = {**mean_figures(views), "views": views, "seconds": cost}
             record["frames"][str(frame)] = entry
             if len(views) > 1:
@@ -260,6 +287,12 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"      volume: rank correlation with |density - truth| {entry['volume_spearman']:.3f} (the "
                       f"density's own {entry['volume_spearman_trivial']:.3f}), coverage 1/2 sigma "
                       f"{entry['volume_coverage_1sigma']:.3f}/{entry['volume_coverage_2sigma']:.3f}", flush=True)
+            if "coverage_2sigma_noiseless" in entry:
+                cover = [r["coverage_2sigma_noiseless"] for r in views.values()]
+                print(f"      against the noiseless images (a diagnosis: the sensor's noise taken away): coverage 1/2 "
+                      f"sigma {entry['coverage_1sigma_noiseless']:.3f}/{entry['coverage_2sigma_noiseless']:.3f} "
+                      f"(2 sigma per view {min(cover):.3f}-{max(cover):.3f}), PSNR "
+                      f"{entry['psnr_noiseless']:.2f}", flush=True)
             print(f"      cost of frame {frame}: run {cost['run']:.1f} s, confidence {cost['confidence']:.1f} s "
                   f"({cost['confidence'] / cost['run']:.2f} x the run; members {cost['members']:.1f} s); "
                   f"load average {os.getloadavg()[0]:.2f} (a shared machine's times vary)", flush=True)
