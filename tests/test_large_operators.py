@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from flamerecon.operators import projector, sparse
+from flamerecon.operators import compiled, projector, sparse
 from flamerecon.operators.projector import MatrixFreeOperator, assemble, assembled_memory
 from flamerecon.operators.sparse import CsrOperator, GrowingArray, transpose_csr
 from tests.helpers import random_coo, random_hull, random_rays
@@ -97,18 +97,72 @@ def test_a_stop_signal_inside_a_solve_ends_a_long_matrix_free_product_within_a_b
     rays = random_rays(box_grid, 300, seed=18)
     op = MatrixFreeOperator(box_grid, rays, random_hull(box_grid, seed=19))
     monkeypatch.setattr(projector, "CHUNK_SAMPLES", 100)  # dozens of blocks
+    monkeypatch.setattr(compiled, "BLOCK_SEGMENTS", 100)  # the same for the compiled forward march
     blocks = []
-    sample = projector._sample
 
-    def sampling(volume, coords):
-        blocks.append(1)
-        if len(blocks) == 3:
-            monkeypatch.setattr(interrupt, "_received", "SIGTERM")  # as the deferred handler records it
-        return sample(volume, coords)
+    def counted(march):
+        def marching(*args):
+            blocks.append(1)
+            if len(blocks) == 3:
+                monkeypatch.setattr(interrupt, "_received", "SIGTERM")  # as the deferred handler records it
+            return march(*args)
+        return marching
 
-    monkeypatch.setattr(projector, "_sample", sampling)
+    monkeypatch.setattr(projector, "_sample", counted(projector._sample))
+    monkeypatch.setattr(compiled, "integrate", counted(compiled.integrate))
     for product in (op.forward, op.adjoint):
         blocks.clear()
         with pytest.raises(interrupt.Stopped, match="SIGTERM received"):
             product(torch.ones(op.shape[1 if product == op.forward else 0], 1))
         assert len(blocks) == 3  # stopped after the block the signal came in, not at the product's end
+
+
+needs_numba = pytest.mark.skipif(not compiled.available("cpu"), reason="numba is not installed: the torch path serves")
+
+
+@needs_numba
+@pytest.mark.parametrize("block", [37, 10**9])
+def test_the_compiled_assembly_is_the_torch_one_entry_for_entry(monkeypatch, box_grid, block):
+    rays = random_rays(box_grid, 500, seed=21)
+    voxel_index = random_hull(box_grid, seed=22)
+    monkeypatch.setattr(compiled, "BLOCK_SEGMENTS", block)  # many blocks, or one
+    fast = assemble(box_grid, rays, voxel_index)
+    monkeypatch.setattr(compiled, "numba", None)
+    slow = assemble(box_grid, rays, voxel_index)
+    assert slow.nnz > 1000 and fast.nnz == slow.nnz
+    assert torch.equal(fast.A.crow_indices(), slow.A.crow_indices())
+    assert torch.equal(fast.A.col_indices(), slow.A.col_indices())
+    assert torch.equal(fast.A.values(), slow.A.values())  # the same float operations, in march order
+
+
+@needs_numba
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_compiled_adjoint_reads_a_rows_and_stores_no_transpose(threads):
+    op, matrix = random_coo(seed=5, N=300, M=80, nnz=4000)
+    y = torch.randn(300, 3, generator=torch.Generator().manual_seed(6))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        got = op.adjoint(y)
+    finally:
+        torch.set_num_threads(before)
+    assert not op.stores_transpose and op._AT is None  # A alone: half the operator's memory
+    assert torch.allclose(got.double(), torch.from_numpy(matrix).double().T @ y.double(), rtol=1e-5, atol=1e-5)
+    assert torch.equal(got, op.adjoint(y))  # the same sums whatever the threads: deterministic
+    assert torch.allclose(got, op.AT @ y, rtol=1e-5, atol=1e-5)  # A^T, built on demand, agrees
+
+
+@needs_numba
+@pytest.mark.parametrize("channels", [1, 3])
+def test_the_compiled_march_integrates_as_grid_sample_does(monkeypatch, box_grid, channels):
+    rays = random_rays(box_grid, 400, seed=23)
+    volume = torch.rand(channels, *box_grid.shape, generator=torch.Generator().manual_seed(24))
+    box = projector.support_box(box_grid, random_hull(box_grid, seed=25))
+    monkeypatch.setattr(compiled, "BLOCK_SEGMENTS", 50)  # many blocks
+    for narrowed in (None, box):
+        fast = projector.integrate_dense(volume, box_grid, rays, 0.5, narrowed)
+        with monkeypatch.context() as torch_path:
+            torch_path.setattr(compiled, "numba", None)
+            slow = projector.integrate_dense(volume, box_grid, rays, 0.5, narrowed)
+        assert fast.shape == (400, channels) and float(slow.abs().max()) > 0.1
+        assert torch.allclose(fast, slow, rtol=1e-5, atol=1e-6)

@@ -22,6 +22,7 @@ from kornia.geometry.camera import PinholeCamera
 from flamerecon import interrupt
 from flamerecon.geometry.cameras import cameras_to, pixel_centers, pixel_rays, project_points
 from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators import compiled
 from flamerecon.operators.sparse import TRANSPOSE_BLOCK, CsrOperator, GrowingArray, stable_argsort
 from flamerecon.progress import Progress
 
@@ -209,8 +210,15 @@ def integrate_dense(
     ``what`` names the march in its progress lines (a long one only)."""
     C = volume.shape[0]
     out = []
-    frame = grid.normalized_frame(rays.origins.device)
     progress = Progress(what, len(rays), "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
+    if compiled.available(volume.device) and not (torch.is_grad_enabled() and (
+            volume.requires_grad or rays.origins.requires_grad or rays.directions.requires_grad)):
+        for sl, seg in compiled_blocks(rays, grid, step, box):
+            out.append(compiled.integrate(volume.detach().float(), *seg).to(volume.dtype))
+            progress.update(sl.stop)
+            interrupt.check()
+        return torch.cat(out, 0) if out else volume.new_zeros(0, C)
+    frame = grid.normalized_frame(rays.origins.device)
     for sl, smp in packed_samples(rays, grid, step, box, frame=frame):
         weighted = _sample(volume, smp.points) * smp.length  # (C, P); points as x, y, z in [-1, 1]
         sums = weighted.new_zeros(C, sl.stop - sl.start).index_add_(1, smp.ray, weighted)
@@ -351,6 +359,8 @@ def assemble(
     M = int(voxel_index.numel())
     box = support_box(grid, voxel_index.to(device))
     live = cells_touching(grid, voxel_index.to(device))
+    if compiled.available(device):
+        return _assemble_compiled(grid, rays, column.to(torch.int32), M, box, live, step)
     top = torch.tensor(live.shape[::-1], device=device) - 1  # (nx, ny, nz)
     N = len(rays)
     counts = torch.zeros(N, dtype=torch.long, device=device)  # entries of each row
@@ -391,6 +401,44 @@ def assemble(
         progress.update(sl.stop)
         interrupt.check()
     crow = torch.zeros(N + 1, dtype=torch.long, device=device)
+    torch.cumsum(counts, 0, out=crow[1:])
+    return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, M))
+
+
+def compiled_blocks(rays: Rays, grid: VoxelGrid, step: float, box: tuple[torch.Tensor, torch.Tensor] | None):
+    """Yield (slice of rays, segments) blocks of about
+    :data:`~flamerecon.operators.compiled.BLOCK_SEGMENTS` segments for the compiled kernels:
+    the rays' origins and directions (R, 3) in continuous voxel coordinates, march box entry
+    and exit (R,), first and one-past-last segment (R,) (narrowed to ``box``) and the
+    segment length, as :func:`packed_samples` marches them."""
+    t_near, t_far, first, end, ds = _segments(rays, grid, step, box)
+    scale, offset = grid.index_frame(rays.origins.device)
+    origins = torch.addcmul(offset.to(rays.origins), rays.origins, scale.to(rays.origins))
+    directions = rays.directions * scale.to(rays.directions)
+    total = torch.cumsum((end - first).clamp_min(0).long(), 0)
+    N, s = len(rays), 0
+    while s < N:
+        base = int(total[s - 1]) if s else 0
+        e = min(N, max(int(torch.searchsorted(total, base + compiled.BLOCK_SEGMENTS, right=True)), s + 1))
+        yield slice(s, e), (origins[s:e], directions[s:e], t_near[s:e], t_far[s:e], first[s:e], end[s:e], ds)
+        s = e
+
+
+def _assemble_compiled(grid: VoxelGrid, rays: Rays, column: torch.Tensor, M: int,
+                       box: tuple[torch.Tensor, torch.Tensor], live: torch.Tensor, step: float) -> CsrOperator:
+    """:func:`assemble` by the compiled kernel (:mod:`~flamerecon.operators.compiled`), block
+    by block (:func:`compiled_blocks`)."""
+    N = len(rays)
+    counts = torch.zeros(N, dtype=torch.long)
+    cols_out, vals_out = GrowingArray(torch.int32, "cpu"), GrowingArray(torch.float32, "cpu")
+    progress = Progress("assembling the operator", N, "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
+    for sl, seg in compiled_blocks(rays, grid, step, box):
+        counts[sl], col, val = compiled.assemble_block(*seg, column, M, live, grid.resolution)
+        cols_out.append(col)
+        vals_out.append(val)
+        progress.update(sl.stop)
+        interrupt.check()
+    crow = torch.zeros(N + 1, dtype=torch.long)
     torch.cumsum(counts, 0, out=crow[1:])
     return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, M))
 
