@@ -109,7 +109,8 @@ def test_a_stop_signal_inside_a_solve_ends_a_long_matrix_free_product_within_a_b
         return marching
 
     monkeypatch.setattr(projector, "_sample", counted(projector._sample))
-    monkeypatch.setattr(compiled, "integrate", counted(compiled.integrate))
+    for kernel in ("rows_forward", "rows_adjoint"):  # the compiled march's products
+        monkeypatch.setattr(compiled, kernel, counted(getattr(compiled, kernel)))
     for product in (op.forward, op.adjoint):
         blocks.clear()
         with pytest.raises(interrupt.Stopped, match="SIGTERM received"):

@@ -88,22 +88,22 @@ def test_the_norm_is_the_largest_singular_value_and_is_computed_once(name):
     build, dtype, _ = OPERATORS[name]
     op = build()
     costly = getattr(op, "costly_products", False)
-    products = COSTLY_NORM_ITERS if costly else 30
     calls = []
     adjoint = op.adjoint
     op.adjoint = lambda y: (calls.append(1), adjoint(y))[1]
     first = norm_sq(op, dtype=dtype)
-    assert len(calls) == products  # one estimate, then the cache
+    products = len(calls)
+    assert products == COSTLY_NORM_ITERS if costly else 1 < products <= 30  # Lanczos stops when converged
     assert norm_sq(op, dtype=dtype) == first and norm(op, dtype=dtype) == first**0.5
-    assert len(calls) == products
+    assert len(calls) == products  # one estimate, then the cache
     norm_sq(op, dtype=dtype, iters=31)  # another estimate (its value may agree to the last bit)
-    assert len(calls) == 2 * products if costly else len(calls) == 61
+    assert len(calls) == 2 * products
     op.adjoint = adjoint
     exact = float(torch.linalg.matrix_norm(dense(op, dtype), 2)) ** 2
     if costly:  # a bound from above, for a safe step, within 10% after three products of A^T A
         assert exact * (1 - 1e-5) <= first <= 1.1 * exact
-    else:  # power iteration approaches ||A||^2 from below; 30 iterations come within 3% here
-        assert 0.97 * exact <= first <= exact * (1 + 1e-5)
+    else:  # Lanczos approaches ||A||^2 from below, here to float precision
+        assert exact * (1 - 1e-4) <= first <= exact * (1 + 1e-5)
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -130,5 +130,9 @@ def test_a_second_solve_on_the_same_operator_reuses_its_norm(name):
         before = len(calls)
         results.append(make_solver(name, max_iters=20, tol=0.0).solve(problem))
         counts.append(len(calls) - before)
-    assert counts[0] - counts[1] == 30  # the power iteration, run by the first solve only
+    fresh, norm_products = csr(A), []
+    fresh_adjoint = fresh.adjoint
+    fresh.adjoint = lambda y: (norm_products.append(1), fresh_adjoint(y))[1]
+    norm_sq(fresh)
+    assert counts[0] - counts[1] == len(norm_products) > 1  # the norm, computed by the first solve only
     assert torch.equal(results[0].x, results[1].x)

@@ -23,9 +23,10 @@ except ImportError:  # the torch path serves
 #: ray segments per block handed to :func:`assemble_block` (its scratch rows hold up to 8
 #: entries a segment: 8 bytes each, so 64 MiB at this size)
 BLOCK_SEGMENTS = 1_000_000
-#: row ranges of an adjoint product, each summed into its own partial result and the partial
-#: results added in order: the same sums whatever the thread count (deterministic results)
-ADJOINT_PARTS = 8
+#: parts a kernel's rays (or rows) are dealt to, run in parallel; an adjoint sums each part
+#: into its own partial result and adds them in order: the same sums whatever the thread
+#: count (deterministic results)
+PARTS = 8
 
 
 def available(device: torch.device | str) -> bool:
@@ -41,19 +42,24 @@ def _threads() -> None:
 if numba is not None:
 
     @numba.njit(parallel=True, cache=True, nogil=True)
-    def _march_rows(origin, direction, near, far, first, end, ds, column, M, live, nx, ny, nz, parts, scratch,
-                    out_col, out_val, counts):  # pragma: no cover - compiled; tested through assemble
-        """The rows of a block of rays, every ``parts``-th ray by each part: ray r's entries
-        (``counts[r]`` of them, hull columns ascending) from ``scratch[r]`` on in ``out_col`` /
-        ``out_val`` (room for 8 a segment)."""
+    def _walk(origin, direction, near, far, first, end, ds, column, M, live, nx, ny, nz, mode, vec, scratch,
+              out_col, out_val, counts, out):  # pragma: no cover - compiled; tested through its callers
+        """March a block of R rays and gather each ray's row of the operator (its entries on
+        the hull columns, ``column`` of each grid voxel or -1), the rays dealt out in turn to
+        ``PARTS`` parts. ``mode`` 0: write row r (``counts[r]`` entries, columns ascending)
+        from ``scratch[r]`` on in ``out_col`` / ``out_val`` (room for 8 a segment); 1: out[0,
+        r] = row r . vec (M, C); 2: out[p] (M, C) += row r * vec[r] (R, C) for the rays of part p."""
         half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
         lx, ly = nx + 1, ny + 1
-        R = origin.shape[0]
-        for p in numba.prange(parts):
-            acc = np.zeros(max(M, 1), np.float32)
+        R, C = origin.shape[0], vec.shape[1]
+        for p in numba.prange(PARTS):
+            acc = np.zeros(max(M, 1), np.float32)  # the row being gathered, by hull column
+            mine = np.empty(max(M, 1), np.int32)  # its columns, in the order first met
             corner = np.full(8, -1, np.int64)  # the hull columns of the current cell's corners
-            for r in range(p, R, parts):  # rays dealt out in turn: parts of equal work
-                slot, n = scratch[r], 0
+            if mode == 2:
+                out[p, :, :] = 0
+            for r in range(p, R, PARTS):  # rays dealt out in turn: parts of equal work
+                n = 0
                 ox, oy, oz = origin[r, 0], origin[r, 1], origin[r, 2]
                 dx, dy, dz = direction[r, 0], direction[r, 1], direction[r, 2]
                 t0, t1, k = near[r], far[r], first[r]
@@ -88,15 +94,29 @@ if numba is not None:
                         if w <= zero:
                             continue
                         if acc[col] == zero:
-                            out_col[slot + n] = col
+                            mine[n] = col
                             n += 1
                         acc[col] += w
-                row = out_col[slot:slot + n]
-                row.sort()
+                if mode == 0:
+                    row = mine[:n]
+                    row.sort()
+                    slot = scratch[r]
+                    for e in range(n):
+                        out_col[slot + e] = row[e]
+                        out_val[slot + e] = acc[row[e]]
+                    counts[r] = n
+                elif mode == 1:
+                    for ch in range(C):
+                        total = zero
+                        for e in range(n):
+                            total += acc[mine[e]] * vec[mine[e], ch]
+                        out[0, r, ch] = total
+                else:
+                    for e in range(n):
+                        for ch in range(C):
+                            out[p, mine[e], ch] += acc[mine[e]] * vec[r, ch]
                 for e in range(n):
-                    out_val[slot + e] = acc[row[e]]
-                    acc[row[e]] = zero
-                counts[r] = n
+                    acc[mine[e]] = zero
 
     @numba.njit(cache=True, nogil=True)
     def _compact(scratch, counts, out_col, out_val):  # pragma: no cover - compiled
@@ -111,15 +131,17 @@ if numba is not None:
         return e
 
     @numba.njit(parallel=True, cache=True, nogil=True)
-    def _integrate(volume, origin, direction, near, far, first, end, ds, parts, out):  # pragma: no cover
+    def _integrate(volume, live, origin, direction, near, far, first, end, ds, out):  # pragma: no cover
         """out[r] = the sum over ray r's segments of their length times the trilinear
-        interpolant of ``volume`` (C, nz, ny, nx) (zero outside) at their midpoints."""
+        interpolant of ``volume`` (C, nz, ny, nx) (zero outside) at their midpoints; segments
+        in cells not ``live`` (no nonzero corner) add nothing and are skipped."""
         C, nz, ny, nx = volume.shape
+        lx, ly = nx + 1, ny + 1
         half, one, zero = np.float32(0.5), np.float32(1.0), np.float32(0.0)
         R = origin.shape[0]
-        for p in numba.prange(parts):
+        for p in numba.prange(PARTS):
             value = np.zeros(C, np.float32)
-            for r in range(p, R, parts):
+            for r in range(p, R, PARTS):
                 ox, oy, oz = origin[r, 0], origin[r, 1], origin[r, 2]
                 dx, dy, dz = direction[r, 0], direction[r, 1], direction[r, 2]
                 t0, t1, k = near[r], far[r], first[r]
@@ -135,6 +157,9 @@ if numba is not None:
                     ux, uy, uz = dx * mid + ox, dy * mid + oy, dz * mid + oz
                     fx0, fy0, fz0 = np.floor(ux), np.floor(uy), np.floor(uz)
                     ix, iy, iz = int(fx0), int(fy0), int(fz0)
+                    cx, cy, cz = min(max(ix + 1, 0), nx), min(max(iy + 1, 0), ny), min(max(iz + 1, 0), nz)
+                    if not live[(cz * ly + cy) * lx + cx]:
+                        continue
                     fx, fy, fz = ux - fx0, uy - fy0, uz - fz0
                     for ch in range(C):
                         value[ch] = zero
@@ -163,53 +188,89 @@ if numba is not None:
                         out[c, ch] += v * y[r, ch]
 
 
-def assemble_block(origin: torch.Tensor, direction: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
-                   first: torch.Tensor, end: torch.Tensor, ds: float, column: torch.Tensor, M: int,
-                   live: torch.Tensor, resolution: tuple[int, int, int]
-                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The CSR rows of R rays: ``origin``, ``direction`` (R, 3) float32 in continuous voxel
-    coordinates, march box entry and exit ``near``, ``far`` (R,), segments ``first``..``end``
-    (R,) float32 of length ``ds`` counted from the entry; ``column`` (V,) int32, each grid
-    voxel's hull column (of ``M``) or -1; ``live`` the cells touching the hull
-    (:func:`~flamerecon.operators.projector.cells_touching`). Returns entries per row (R,)
-    long, columns (E,) int32 ascending within each row and values (E,) float32."""
-    R = int(origin.shape[0])
+def _run_walk(segments: tuple, column: torch.Tensor, M: int, live: torch.Tensor, resolution, mode: int,
+              vec: torch.Tensor, scratch: torch.Tensor, out_col: np.ndarray, out_val: np.ndarray,
+              counts: np.ndarray, out: np.ndarray) -> None:
+    origin, direction, near, far, first, end, ds = segments
+    _threads()
+    nx, ny, nz = resolution
+    arrays = [t.contiguous().numpy() for t in (origin, direction, near, far, first, end)]
+    _walk(*arrays, np.float32(ds), column.numpy(), int(M), live.contiguous().view(-1).numpy(), nx, ny, nz, mode,
+          vec.contiguous().numpy(), scratch.numpy(), out_col, out_val, counts, out)
+
+
+_NONE = np.zeros((0, 0, 0), np.float32)
+
+
+def assemble_block(segments: tuple, column: torch.Tensor, M: int, live: torch.Tensor,
+                   resolution: tuple[int, int, int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The CSR rows of R rays: ``segments`` as :func:`~flamerecon.operators.projector.
+    compiled_blocks` yields them (origins, directions (R, 3) float32 in continuous voxel
+    coordinates, march box entry and exit (R,), first and one-past-last segment (R,), the
+    segment length); ``column`` (V,) int32, each grid voxel's hull column (of ``M``) or -1;
+    ``live`` the cells touching the hull (:func:`~flamerecon.operators.projector.
+    cells_touching`). Returns entries per row (R,) long, columns (E,) int32 ascending within
+    each row and values (E,) float32."""
+    first, end = segments[4], segments[5]
+    R = int(first.shape[0])
     scratch = torch.zeros(R + 1, dtype=torch.long)
     torch.cumsum((end - first).clamp_min(0).long() * 8, 0, out=scratch[1:])
     out_col = np.empty(int(scratch[-1]), np.int32)
     out_val = np.empty(int(scratch[-1]), np.float32)
     counts = np.zeros(R, np.int64)
-    _threads()
-    nx, ny, nz = resolution
-    arrays = [t.contiguous().numpy() for t in (origin, direction, near, far, first, end)]
-    _march_rows(*arrays, np.float32(ds), column.numpy(), int(M), live.contiguous().view(-1).numpy(), nx, ny, nz,
-                numba.get_num_threads(), scratch.numpy(), out_col, out_val, counts)
+    _run_walk(segments, column, M, live, resolution, 0, torch.zeros(1, 1), scratch, out_col, out_val, counts, _NONE)
     E = _compact(scratch.numpy(), counts, out_col, out_val)
     return torch.from_numpy(counts), torch.from_numpy(out_col[:E].copy()), torch.from_numpy(out_val[:E].copy())
 
 
-def integrate(volume: torch.Tensor, origin: torch.Tensor, direction: torch.Tensor, near: torch.Tensor,
-              far: torch.Tensor, first: torch.Tensor, end: torch.Tensor, ds: float) -> torch.Tensor:
-    """Line integrals (R, C) of ``volume`` (C, nz, ny, nx) along R rays given as for
-    :func:`assemble_block`: the segments' lengths times the trilinear interpolant at their
-    midpoints (zero outside the grid), as ``grid_sample`` gives it to float rounding."""
+def rows_forward(segments: tuple, column: torch.Tensor, M: int, live: torch.Tensor, resolution,
+                 x: torch.Tensor) -> torch.Tensor:
+    """A x (R, C) for the rows of R rays (as :func:`assemble_block`) and hull values x (M, C)
+    float32, each row gathered and used, never stored."""
+    out = np.empty((1, int(segments[4].shape[0]), int(x.shape[1])), np.float32)
+    _run_walk(segments, column, M, live, resolution, 1, x, torch.zeros(1, dtype=torch.long),
+              np.empty(0, np.int32), np.empty(0, np.float32), np.empty(0, np.int64), out)
+    return torch.from_numpy(out[0])
+
+
+def rows_adjoint(segments: tuple, column: torch.Tensor, M: int, live: torch.Tensor, resolution,
+                 y: torch.Tensor) -> torch.Tensor:
+    """A^T y (M, C) for the rows of R rays (as :func:`assemble_block`) and y (R, C) float32:
+    each part's rows summed into its own partial result, the partial results added in order."""
+    out = np.empty((PARTS, int(M), int(y.shape[1])), np.float32)
+    _run_walk(segments, column, M, live, resolution, 2, y, torch.zeros(1, dtype=torch.long),
+              np.empty(0, np.int32), np.empty(0, np.float32), np.empty(0, np.int64), out)
+    return _partial_sum(out)
+
+
+def _partial_sum(partial: np.ndarray) -> torch.Tensor:
+    """partial[0] + partial[1] + ... in that order (P, M, C) -> (M, C)."""
+    out = torch.from_numpy(partial[0])
+    for p in range(1, partial.shape[0]):
+        out += torch.from_numpy(partial[p])
+    return out
+
+
+def integrate(volume: torch.Tensor, live: torch.Tensor, segments: tuple) -> torch.Tensor:
+    """Line integrals (R, C) of ``volume`` (C, nz, ny, nx) float32 along R rays, ``segments``
+    as for :func:`assemble_block`: the segments' lengths times the trilinear interpolant at
+    their midpoints (zero outside the grid), as ``grid_sample`` gives it to float rounding;
+    ``live``: the cells touching the volume's nonzeros (the others are skipped)."""
+    origin, direction, near, far, first, end, ds = segments
     out = np.empty((int(origin.shape[0]), int(volume.shape[0])), np.float32)
     _threads()
-    arrays = [t.contiguous().numpy() for t in (volume, origin, direction, near, far, first, end)]
-    _integrate(*arrays, np.float32(ds), numba.get_num_threads(), out)
+    arrays = [t.contiguous().numpy() for t in (volume, live.view(-1), origin, direction, near, far, first, end)]
+    _integrate(*arrays, np.float32(ds), out)
     return torch.from_numpy(out)
 
 
 def adjoint(A: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """A^T y (M, C) for a CPU CSR matrix A (N, M) and y (N, C), from A's rows: the rows in
-    :data:`ADJOINT_PARTS` ranges summed in parallel, their results added in order."""
+    :data:`PARTS` ranges summed in parallel, their results added in order."""
     N, M = A.shape
     y = y.contiguous()
-    parts = np.linspace(0, N, ADJOINT_PARTS + 1).astype(np.int64)
-    partial = np.empty((ADJOINT_PARTS, M, y.shape[1]), y.numpy().dtype)
+    parts = np.linspace(0, N, PARTS + 1).astype(np.int64)
+    partial = np.empty((PARTS, M, y.shape[1]), y.numpy().dtype)
     _threads()
     _scatter_rows(A.crow_indices().numpy(), A.col_indices().numpy(), A.values().numpy(), y.numpy(), parts, partial)
-    out = torch.from_numpy(partial[0])
-    for p in range(1, ADJOINT_PARTS):
-        out += torch.from_numpy(partial[p])
-    return out
+    return _partial_sum(partial)

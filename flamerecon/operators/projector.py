@@ -213,8 +213,10 @@ def integrate_dense(
     progress = Progress(what, len(rays), "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
     if compiled.available(volume.device) and not (torch.is_grad_enabled() and (
             volume.requires_grad or rays.origins.requires_grad or rays.directions.requires_grad)):
+        values = volume.detach().float().contiguous()
+        live = cells_touching(grid, (values != 0).any(0).view(-1).nonzero().squeeze(1))
         for sl, seg in compiled_blocks(rays, grid, step, box):
-            out.append(compiled.integrate(volume.detach().float(), *seg).to(volume.dtype))
+            out.append(compiled.integrate(values, live, seg).to(volume.dtype))
             progress.update(sl.stop)
             interrupt.check()
         return torch.cat(out, 0) if out else volume.new_zeros(0, C)
@@ -433,7 +435,7 @@ def _assemble_compiled(grid: VoxelGrid, rays: Rays, column: torch.Tensor, M: int
     cols_out, vals_out = GrowingArray(torch.int32, "cpu"), GrowingArray(torch.float32, "cpu")
     progress = Progress("assembling the operator", N, "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
     for sl, seg in compiled_blocks(rays, grid, step, box):
-        counts[sl], col, val = compiled.assemble_block(*seg, column, M, live, grid.resolution)
+        counts[sl], col, val = compiled.assemble_block(seg, column, M, live, grid.resolution)
         cols_out.append(col)
         vals_out.append(val)
         progress.update(sl.stop)
@@ -500,11 +502,39 @@ class MatrixFreeOperator:
         self.voxel_index = voxel_index.to(rays.origins.device)
         self.box = support_box(grid, self.voxel_index)
         self.shape = (len(rays), int(voxel_index.numel()))
+        self.compiled = compiled.available(rays.origins.device)
+        if self.compiled:  # the rows are gathered on the fly by the compiled march
+            self.column = torch.full((grid.num_voxels,), -1, dtype=torch.int32)
+            self.column[self.voxel_index] = torch.arange(self.shape[1], dtype=torch.int32)
+            self.live = cells_touching(grid, self.voxel_index)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.compiled:
+            return _RowsProduct.apply(x, self)
         return integrate_dense(self.grid.dense(x, self.voxel_index), self.grid, self.rays, self.step, self.box)
 
+    def rows(self, x: torch.Tensor, adjoint: bool) -> torch.Tensor:
+        """A x (or A^T y for ``adjoint``) by the compiled march, block by block."""
+        parts = []
+        what = "the adjoint's march" if adjoint else "marching rays"
+        progress = Progress(what, self.shape[0], "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
+        x = x.detach().float().contiguous()
+        out = x.new_zeros(self.shape[1], x.shape[1]) if adjoint else None
+        for sl, seg in compiled_blocks(self.rays, self.grid, self.step, self.box):
+            args = (seg, self.column, self.shape[1], self.live, self.grid.resolution)
+            if adjoint:
+                out += compiled.rows_adjoint(*args, x[sl])
+            else:
+                parts.append(compiled.rows_forward(*args, x))
+            progress.update(sl.stop)
+            interrupt.check()
+        if adjoint:
+            return out
+        return torch.cat(parts) if parts else x.new_zeros(0, x.shape[1])
+
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        if self.compiled:
+            return self.rows(y, adjoint=True).to(y.dtype)
         C = y.shape[1]
         volume = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device, requires_grad=True)
         total = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device)
@@ -518,6 +548,19 @@ class MatrixFreeOperator:
                 progress.update(sl.stop)
                 interrupt.check()
         return total.reshape(C, -1)[:, self.voxel_index].T.contiguous()
+
+
+class _RowsProduct(torch.autograd.Function):
+    """y = A x of a compiled :class:`MatrixFreeOperator`, with dL/dx = A^T dL/dy."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, op: MatrixFreeOperator) -> torch.Tensor:
+        ctx.op = op
+        return op.rows(x, adjoint=False).to(x.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        return ctx.op.rows(grad_out, adjoint=True).to(grad_out.dtype), None
 
 
 #: voxels per side of the blocks whose projections bound where a render can be nonzero
