@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from flamerecon.operators import compiled, projector, sparse
+from flamerecon.operators import compiled, projector, residual_gradient, sparse
 from flamerecon.operators.projector import MatrixFreeOperator, assemble, assembled_memory
 from flamerecon.operators.sparse import CsrOperator, GrowingArray, transpose_csr
 from tests.helpers import random_coo, random_hull, random_rays
@@ -167,3 +167,15 @@ def test_the_compiled_march_integrates_as_grid_sample_does(monkeypatch, box_grid
             slow = projector.integrate_dense(volume, box_grid, rays, 0.5, narrowed)
         assert fast.shape == (400, channels) and float(slow.abs().max()) > 0.1
         assert torch.allclose(fast, slow, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_the_residual_and_its_gradient_in_one_pass_are_the_two_products(channels):
+    op, matrix = random_coo(seed=7, N=250, M=90, nnz=3000)
+    g = torch.Generator().manual_seed(8)
+    x, b = torch.rand(90, channels, generator=g), torch.rand(250, channels, generator=g)
+    r, grad = residual_gradient(op, x, b)
+    dense = torch.from_numpy(matrix).double()
+    expected_r = dense @ x.double() - b.double()
+    assert torch.allclose(r.double(), expected_r, rtol=1e-5, atol=1e-5)
+    assert torch.allclose(grad.double(), dense.T @ expected_r, rtol=1e-4, atol=1e-4)

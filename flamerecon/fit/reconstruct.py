@@ -202,7 +202,8 @@ class Reconstruction:
         ``warnings`` (:func:`~flamerecon.evaluate.result_warnings.result_warnings`)."""
         photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
         metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
-                           self.setup.step, self.options.silhouette.as_dict(), photometry)
+                           self.setup.step, self.options.silhouette.as_dict(), photometry,
+                           self.setup.training_pixels(self.density))
         metrics["warnings"] = result_warnings(
             self.scene, self.density, {**metrics, "calibration": self.calibration}, self.setup.train + self.setup.holdout,
             *penalty_of(self.options.solver.as_dict(), self.fit.l1), train=self.setup.train, step=self.setup.step,

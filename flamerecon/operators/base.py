@@ -22,6 +22,16 @@ class LinearOperator(Protocol):
     def adjoint(self, y: torch.Tensor) -> torch.Tensor: ...
 
 
+def residual_gradient(op: LinearOperator, x: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """r = A x - b (N, C) and the data term's gradient A^T r (M, C), by the operator's own
+    ``residual_gradient`` where it has one (the assembled operator reads A once for both)."""
+    fused = getattr(op, "residual_gradient", None)
+    if fused is not None:
+        return fused(x, b)
+    r = op.forward(x) - b
+    return r, op.adjoint(r)
+
+
 def _dot(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a.double() * b.double()).sum())
 

@@ -611,19 +611,26 @@ def footprint(nonzero: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, block
 
 
 def render_image(
-    volume: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, step: float = 0.5
+    volume: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, step: float = 0.5,
+    known: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Render every pixel of every camera: volume (C, nz, ny, nx) -> images (B, C, H, W).
     Only the pixels of the :func:`footprint` of the volume's nonzeros are marched, and only in
-    the box of those nonzeros (everything else adds exactly 0)."""
+    the box of those nonzeros (everything else adds exactly 0). ``known``: pixels already
+    rendered, their flat index ``b * H * W + v * W + u`` (K,) and values (K, C) (an assembled
+    operator's A x: the same weights), taken as they are, not marched."""
     B, C = cams.batch_size, volume.shape[0]
     H, W = int(cams.height[0]), int(cams.width[0])
     with torch.no_grad():
         nonzero = volume.abs().sum(0) > 0
         box = support_box(grid, nonzero.reshape(-1).nonzero().squeeze(1))
         seen = footprint(nonzero, grid, cameras_to(cams, volume.device)).reshape(-1)
-        rays, _ = camera_rays(cams, seen.reshape(B, H, W).to(cams.intrinsics.device))
         pix = volume.new_zeros(B * H * W, C)
+        if known is not None:
+            index = known[0].to(volume.device)
+            pix[index] = known[1].to(pix)
+            seen[index] = False
+        rays, _ = camera_rays(cams, seen.reshape(B, H, W).to(cams.intrinsics.device))
         pix[seen] = integrate_dense(volume, grid, rays.to(volume.device), step, box,
                                     f"rendering {B} view{'s' if B != 1 else ''} of {W}x{H} px")
     return pix.T.reshape(C, B, H, W).transpose(0, 1).contiguous()

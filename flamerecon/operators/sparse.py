@@ -236,9 +236,22 @@ class CsrOperator:
         return csr_matmul(self.A, x)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
-        if compiled.available(y.device) and self.A.values().dtype == y.dtype:
+        if self._compiled(y):
             return compiled.adjoint(self.A, y)
         return csr_matmul(self.AT, y)
+
+    def residual_gradient(self, x: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """r = A x - b (N, C) and A^T r (M, C): on the CPU with the compiled kernels in one
+        pass over A (the two products read it twice)."""
+        if self._compiled(x):
+            return compiled.residual_gradient(self.A, x, b)
+        r = self.forward(x) - b
+        return r, self.adjoint(r)
+
+    def _compiled(self, v: torch.Tensor) -> bool:
+        """Whether a product with ``v`` runs on the compiled kernels (CPU, A's dtype, no autograd)."""
+        return compiled.available(v.device) and self.A.values().dtype == v.dtype and not (
+            v.requires_grad and torch.is_grad_enabled())
 
     def to(self, device) -> CsrOperator:
         """The operator on ``device`` (A^T, where it is needed there, transposed on first use)."""
