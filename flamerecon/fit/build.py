@@ -15,6 +15,7 @@ from flamerecon.arguments import fields, instance, tensor, value, wrong_type, wr
 from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.evaluate.metrics import resample_to
+from flamerecon.fit.capture_operator import capture_operator
 from flamerecon.fit.checks import (
     check_grid_memory,
     check_scene,
@@ -153,7 +154,11 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
     step = float(options.projector.step)
     assembly = time.perf_counter()
     backend = choose_backend(options.projector.backend, grid, rays, voxel_index, step, device, budget)
-    operator = make_operator(backend, grid, rays, voxel_index, step)
+    operator = None
+    if backend == "assembled":  # the capture's region operator, where it serves
+        operator = capture_operator(scene, cams, grid, masks[train], rows, hull, step, options)
+    if operator is None:
+        operator = make_operator(backend, grid, rays, voxel_index, step)
     now = time.perf_counter()
     return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view,
                  now - started, now - assembly, options, flat.cpu())

@@ -470,6 +470,8 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     # cameras' errors into them (held-out train02, ScalarFlow frame 35: 31.84 dB against 33.23
     # with the gain), so they keep the penalised structure, only its level debiased
     fitting = options.replace(debias=DebiasOptions("gain")) if options.debias.method == "refit" else options
+    # the cameras change at every round of the fit: their operators are not kept (projector.reuse)
+    fitting = fitting.replace(projector=replace(fitting.projector, reuse=False))
 
     def capture_choice(cameras, sources: list[Scene]) -> dict | None:
         """With select.auto: the selection record of the weights whose leave-one-view-out

@@ -211,6 +211,38 @@ if numba is not None:
                     for ch in range(C):
                         out[c, ch] += v * residual[r, ch]
 
+if numba is not None:
+
+    @numba.njit(cache=True, nogil=True)
+    def _select(counts, col, val, keep_rows, col_map, out_counts, out_col, out_val):  # pragma: no cover
+        """The kept rows' entries on the kept columns (see :func:`select`); returns their number."""
+        e, n, k = 0, 0, 0
+        for r in range(counts.shape[0]):
+            if keep_rows[r]:
+                start = n
+                for i in range(e, e + counts[r]):
+                    c = col_map[col[i]]
+                    if c >= 0:
+                        out_col[n] = c
+                        out_val[n] = val[i]
+                        n += 1
+                out_counts[k] = n - start
+                k += 1
+            e += counts[r]
+        return n
+
+
+def select(counts: torch.Tensor, col: torch.Tensor, val: torch.Tensor, keep_rows: torch.Tensor,
+           col_map: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`~flamerecon.operators.stored.select` in one pass (CPU)."""
+    out_counts = np.empty(int(keep_rows.sum()), np.int64)
+    out_col = np.empty(int(col.numel()), np.int32)
+    out_val = np.empty(int(col.numel()), np.float32)
+    n = _select(counts.long().numpy(), col.numpy(), val.numpy(), keep_rows.numpy(), col_map.to(torch.int32).numpy(),
+                out_counts, out_col, out_val)
+    return torch.from_numpy(out_counts), torch.from_numpy(out_col[:n].copy()), torch.from_numpy(out_val[:n].copy())
+
+
 def _run_walk(segments: tuple, column: torch.Tensor, M: int, live: torch.Tensor, resolution, mode: int,
               vec: torch.Tensor, scratch: torch.Tensor, out_col: np.ndarray, out_val: np.ndarray,
               counts: np.ndarray, out: np.ndarray) -> None:

@@ -362,7 +362,7 @@ def assemble(
     box = support_box(grid, voxel_index.to(device))
     live = cells_touching(grid, voxel_index.to(device))
     if compiled.available(device):
-        return _assemble_compiled(grid, rays, column.to(torch.int32), M, box, live, step)
+        return _assemble_compiled(grid, rays, voxel_index, step)
     top = torch.tensor(live.shape[::-1], device=device) - 1  # (nx, ny, nz)
     N = len(rays)
     counts = torch.zeros(N, dtype=torch.long, device=device)  # entries of each row
@@ -426,23 +426,33 @@ def compiled_blocks(rays: Rays, grid: VoxelGrid, step: float, box: tuple[torch.T
         s = e
 
 
-def _assemble_compiled(grid: VoxelGrid, rays: Rays, column: torch.Tensor, M: int,
-                       box: tuple[torch.Tensor, torch.Tensor], live: torch.Tensor, step: float) -> CsrOperator:
-    """:func:`assemble` by the compiled kernel (:mod:`~flamerecon.operators.compiled`), block
-    by block (:func:`compiled_blocks`)."""
+def assembled_blocks(grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5):
+    """Yield the rows of :func:`assemble` block by block, by the compiled kernel
+    (:mod:`~flamerecon.operators.compiled`; CPU, numba): (slice of rays, entries per row (R,)
+    long, columns (E,) int32 ascending within each row, values (E,) float32)."""
+    M = int(voxel_index.numel())
+    column = torch.full((grid.num_voxels,), -1, dtype=torch.int32)
+    column[voxel_index] = torch.arange(M, dtype=torch.int32)
+    box, live = support_box(grid, voxel_index), cells_touching(grid, voxel_index)
+    progress = Progress("assembling the operator", len(rays), "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
+    for sl, seg in compiled_blocks(rays, grid, step, box):
+        yield (sl, *compiled.assemble_block(seg, column, M, live, grid.resolution))
+        progress.update(sl.stop)
+        interrupt.check()
+
+
+def _assemble_compiled(grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float) -> CsrOperator:
+    """:func:`assemble` by the compiled kernel, block by block (:func:`assembled_blocks`)."""
     N = len(rays)
     counts = torch.zeros(N, dtype=torch.long)
     cols_out, vals_out = GrowingArray(torch.int32, "cpu"), GrowingArray(torch.float32, "cpu")
-    progress = Progress("assembling the operator", N, "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
-    for sl, seg in compiled_blocks(rays, grid, step, box):
-        counts[sl], col, val = compiled.assemble_block(seg, column, M, live, grid.resolution)
+    for sl, n, col, val in assembled_blocks(grid, rays, voxel_index, step):
+        counts[sl] = n
         cols_out.append(col)
         vals_out.append(val)
-        progress.update(sl.stop)
-        interrupt.check()
     crow = torch.zeros(N + 1, dtype=torch.long)
     torch.cumsum(counts, 0, out=crow[1:])
-    return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, M))
+    return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, int(voxel_index.numel())))
 
 
 #: rays assembled to estimate the operator's size (:func:`assembled_memory`): evenly spread over
