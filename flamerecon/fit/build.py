@@ -153,7 +153,8 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
     row_view = flat // (images.shape[-2] * images.shape[-1])
     step = float(options.projector.step)
     assembly = time.perf_counter()
-    backend = choose_backend(options.projector.backend, grid, rays, voxel_index, step, device, budget)
+    backend = choose_backend(options.projector.backend, grid, rays, voxel_index, step, device, budget,
+                             options.solver.params.get("max_iters"))
     operator = None
     if backend == "assembled":  # the capture's region operator, where it serves
         operator = capture_operator(scene, cams, grid, masks[train], rows, hull, step, options)

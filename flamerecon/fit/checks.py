@@ -20,7 +20,14 @@ from flamerecon.geometry.hull import carve_counts
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
 from flamerecon.machine import available_bytes, format_bytes
-from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
+from flamerecon.operators.projector import (
+    Rays,
+    assembled_memory,
+    march_box,
+    matrix_free_seconds,
+    ray_box,
+)
+from flamerecon.progress import duration
 from flamerecon.scenes import Scene, SceneError
 
 log = logging.getLogger(__name__)
@@ -158,11 +165,12 @@ def check_grid_memory(grid: VoxelGrid, n_views: int, device: torch.device, budge
 
 def choose_backend(
     requested: str, grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float,
-    device: torch.device, budget: int | None,
+    device: torch.device, budget: int | None, iterations: int | None = None,
 ) -> str:
     """``projector.backend`` to use: ``auto`` is ``assembled`` when its estimated peak memory
-    fits in ``budget`` bytes, else ``matrix_free``; an explicit ``assembled`` that would not fit
-    is refused with the figures and the alternatives."""
+    fits in ``budget`` bytes, else ``matrix_free``, told with its expected time for
+    ``iterations`` (:func:`~flamerecon.operators.projector.matrix_free_seconds`) and the ways out; an
+    explicit ``assembled`` that would not fit is refused with the figures and the alternatives."""
     if requested == "matrix_free":
         return requested
     if requested not in ("auto", "assembled"):
@@ -172,20 +180,23 @@ def choose_backend(
     est = assembled_memory(grid, rays, voxel_index, step)
     if budget is None or est.peak_bytes <= budget:
         if est.peak_bytes >= LOUD_OPERATOR_BYTES:
-            log.info("operator: %d rays x %d hull voxels, about %.3g nonzeros: %s for A and A^T (%s while it "
+            log.info("operator: %d rays x %d hull voxels, about %.3g nonzeros: %s for %s (%s while it "
                      "is assembled)", len(rays), int(voxel_index.numel()), est.nnz, format_bytes(est.operator_bytes),
-                     format_bytes(est.peak_bytes))
+                     est.stored, format_bytes(est.peak_bytes))
         return "assembled"
     figure = (
         f"the assembled operator for {len(rays)} rays x {int(voxel_index.numel())} hull voxels "
-        f"needs about {format_bytes(est.operator_bytes)} (~{est.nnz:.3g} nonzeros, A and A^T) and "
+        f"needs about {format_bytes(est.operator_bytes)} (~{est.nnz:.3g} nonzeros, {est.stored}) and "
         f"about {format_bytes(est.peak_bytes)} while it is built, but {format_bytes(budget)} is "
         f"available on {device}"
     )
     if requested == "auto":
+        seconds = matrix_free_seconds(rays, grid, step, voxel_index, iterations or 100, torch.get_num_threads())
         log.warning("projector.backend=auto: %s; using the matrix-free backend, whose products march every ray "
-                    "again (150-300x an assembled product's time; its step comes from a 3-product bound): keep its "
-                    "iterations few (a ladder, ladder.rungs, solves coarser levels first)", figure)
+                    "again: about %s for %d iterations here. To keep the assembled one: free memory or raise "
+                    "projector.max_memory_gb, or shrink the operator (scene.downscale, grid.resolution); or keep the "
+                    "iterations few (a ladder, ladder.rungs, solves coarser levels first)", figure,
+                    duration(seconds), iterations or 100)
         return "matrix_free"
     nx, ny, nz = grid.resolution
     raise MemoryBudgetError(

@@ -172,6 +172,7 @@ class Reconstruction:
     levels: list[dict] = field(default_factory=list)  # one record per grid (with grid.levels)
     calibration: dict | None = None  # the camera refinement's record
     timing: dict = field(default_factory=dict)  # wall seconds per step
+    memory_bound: int | None = None  # bytes: the bound of the process's peak told before the work
 
     def __post_init__(self) -> None:
         fields(self)
@@ -610,7 +611,7 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     volume = None if resumed is not None else init
     if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, levels[0].grid if levels else fine, int(scene.images.shape[1]))
-    check_workload(scene, options, fine, device)
+    bound = check_workload(scene, options, fine, device, levels).bytes
     timing: dict = {}
     clock = time.perf_counter()
     scene, calibration = calibrated_scene(scene, options, device)
@@ -635,4 +636,4 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     timing.update(found.seconds)
     if levels:
         records.append(level_record(setup, found.l1, found.result))
-    return Reconstruction(scene, setup, found, records, calibration, timing)
+    return Reconstruction(scene, setup, found, records, calibration, timing, bound)

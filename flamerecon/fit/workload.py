@@ -13,7 +13,7 @@ An operator's nonzeros are bounded from its rows (the training silhouettes' pixe
 chords through the box: :data:`ENTRIES_PER_VOXEL` entries per voxel of chord at most. No time is
 told for an assembled run: from box-crossing rays, a per-sample cost overestimated a ScalarFlow
 frame at 1/2 resolution 130-fold; a matrix-free fallback says its time
-(:func:`matrix_free_minutes`).
+(:func:`~flamerecon.operators.projector.matrix_free_seconds`).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.machine import format_bytes, resident_bytes
 from flamerecon.operators import compiled
 from flamerecon.operators.projector import (
+    ASSEMBLY_CHUNK_SAMPLES,
     CHUNK_SAMPLES,
     Rays,
     camera_rays,
@@ -59,9 +60,11 @@ LONG_RUN_SAMPLES = 1e9
 ENTRIES_PER_VOXEL = 2.0
 #: bytes of one assembled entry stored once (float32 value, int32 column)
 ENTRY_BYTES = 8
-#: an assembly's temporaries: the compiled march's block scratch (8 entries of 8 bytes a
-#: segment) and its rows' copies; the torch path's chunk (160 bytes a sample) and a transpose block
-ASSEMBLY_BYTES = {True: 2 * 64 * 2**20, False: 160 * 2_000_000 + 48 * 4_000_000}
+#: an assembly's temporaries per segment of a block: the compiled march's scratch (8 entries
+#: of 8 bytes a segment) and its rows' copies; the torch path's (160 bytes a sample of a chunk,
+#: and a transpose block's 48 bytes an entry, about one a sample)
+ASSEMBLY_BYTES_PER_SEGMENT = 2 * 8 * 8
+ASSEMBLY_BYTES_PER_SAMPLE = 160 + 48
 #: bytes per pixel and channel while a view is scored: its render (the march's buffer, the
 #: image, its copy), SSIM's maps (float32) and the detail band's (float64)
 SCORE_BYTES_PER_PIXEL = 3 * 4 + 15 * 4 + 4 * 8
@@ -70,10 +73,6 @@ AUTOGRAD_BYTES_PER_SAMPLE = 100
 #: what the allocator keeps beyond the phases' own arrays (freed blocks not returned, the
 #: solver's vectors): measured within this of the bound on the configurations of docs/results.md
 SLACK_BYTES = 256 * 2**20
-#: CPU seconds per ray segment of a matrix-free product (the compiled march, hull cells and
-#: empty ones together; measured 15-40 ns a segment on ScalarFlow), and products per iteration
-SECONDS_PER_SEGMENT = 40e-9
-PRODUCTS_PER_ITERATION = 2.6
 
 
 @dataclass(frozen=True)
@@ -99,14 +98,19 @@ class Workload:
         return max(self.phases, key=lambda p: p.bytes)
 
     @property
+    def added(self) -> int:
+        """Bytes the run will add to what it holds now: the largest phase and the allocator's slack."""
+        return self.largest.bytes + SLACK_BYTES
+
+    @property
     def bytes(self) -> int:
-        """The bound of the process's peak: baseline, the largest phase and the allocator's slack."""
-        return self.baseline + self.largest.bytes + SLACK_BYTES
+        """The bound of the process's peak: the baseline and what the run adds."""
+        return self.baseline + self.added
 
     def __str__(self) -> str:
         return (f"{self.rays:.3g} rays, {self.voxels:.3g} voxels, {self.samples:.3g} ray samples per pass: "
-                f"at most {format_bytes(self.bytes)} of memory ({format_bytes(self.baseline)} now, "
-                f"{format_bytes(self.largest.bytes)} more while {self.largest.name})")
+                f"a peak of at most {format_bytes(self.bytes)} ({format_bytes(self.baseline)} held now, "
+                f"{format_bytes(self.added)} more while {self.largest.name})")
 
 
 def box_rays(scene: Scene, grid: VoxelGrid, step: float) -> tuple[int, int]:
@@ -146,15 +150,18 @@ def silhouette_chords(scene: Scene, options: ReconstructionOptions, grid: VoxelG
     return rows, float(chord.sum()) / float(grid.voxel_size().min())
 
 
-def level_bytes(rows: int, chord_voxels: float, grid: VoxelGrid, scene: Scene, channels: int, device) -> int:
+def level_bytes(rows: int, chord_voxels: float, grid: VoxelGrid, scene: Scene, channels: int, step: float,
+                device) -> int:
     """An assembled level's bytes: its grid's dense arrays, its rays and pixels, its operator
     (A, and A^T where the adjoint needs it) bounded by :data:`ENTRIES_PER_VOXEL`, and the
-    assembly's temporaries."""
+    assembly's temporaries (for its segments, at most a block's)."""
     copies = 1 if compiled.available(device) else 2
     nnz = ENTRIES_PER_VOXEL * chord_voxels
+    segments = min(chord_voxels / float(step), compiled.BLOCK_SEGMENTS if copies == 1 else ASSEMBLY_CHUNK_SAMPLES)
+    temporaries = segments * (ASSEMBLY_BYTES_PER_SEGMENT if copies == 1 else ASSEMBLY_BYTES_PER_SAMPLE)
     return int(grid.num_voxels * (DENSE_BYTES_PER_VOXEL + scene.num_views)
                + rows * (BYTES_PER_RAY + BYTES_PER_RAY_CHANNEL * channels + 8)
-               + copies * ENTRY_BYTES * nnz + ASSEMBLY_BYTES[copies == 1])
+               + copies * ENTRY_BYTES * nnz + temporaries)
 
 
 def scoring_bytes(scene: Scene, native: tuple[int, int] | None) -> int:
@@ -176,32 +183,32 @@ def workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid, leve
     when the run works below it."""
     C = int(scene.images.shape[1])
     rows, chord = silhouette_chords(scene, options, grid)
-    phases = [Phase("the final grid is solved", level_bytes(rows, chord, grid, scene, C, device), "grid.resolution")]
+    step = float(options.projector.step)
+    phases = [Phase("the final grid is solved", level_bytes(rows, chord, grid, scene, C, step, device),
+                    "grid.resolution")]
     for level in levels or []:
         scale = float(grid.voxel_size().min()) / float(level.grid.voxel_size().min())  # chords in its voxels
         area = 1.0 if level.downscale is None else (scene_downscale(scene) / level.downscale) ** 2
         field = "ladder.rungs" if level.downscale is not None else "grid.levels"
         phases.append(Phase(f"the level {'x'.join(map(str, level.grid.resolution))} is solved",
-                            level_bytes(int(rows * area), chord * area * scale, level.grid, scene, C, device), field))
-    phases.append(Phase("the result is scored", phases[0].bytes + scoring_bytes(scene, native), "scene.downscale"))
+                            level_bytes(int(rows * area), chord * area * scale, level.grid, scene, C, step, device),
+                            field))
+    scoring = scoring_bytes(scene, native)  # the final operator is held while the result is scored
+    phases.append(Phase("the result is scored", phases[0].bytes + scoring,
+                        "scene.downscale" if scoring > phases[0].bytes else "grid.resolution"))
     if options.calibration.refine != "none" and not options.calibration.file:
         cal_grid = grid if not options.calibration.resolution else VoxelGrid.from_box(
             grid.bbox_min, grid.bbox_max, options.calibration.resolution)
         scale = float(grid.voxel_size().min()) / float(cal_grid.voxel_size().min())
-        phases.append(Phase("the cameras are fitted", level_bytes(rows, chord * scale, cal_grid, scene, C, device)
+        phases.append(Phase("the cameras are fitted", level_bytes(rows, chord * scale, cal_grid, scene, C, step, device)
                             + CHUNK_SAMPLES * C * AUTOGRAD_BYTES_PER_SAMPLE, "calibration.resolution"))
-    rays, samples = box_rays(scene, grid, float(options.projector.step))
+    rays, samples = box_rays(scene, grid, step)
     return Workload(rays, grid.num_voxels, samples, resident_bytes(), tuple(phases))
 
 
 def scene_downscale(scene: Scene) -> int:
     """The downscale the scene was loaded at (1 when not told)."""
     return int((scene.meta.get("config") or {}).get("downscale") or 1)
-
-
-def matrix_free_minutes(segments: float, iterations: int, threads: int) -> float:
-    """Minutes of a matrix-free solve of ``iterations`` over ``segments`` ray segments a product."""
-    return segments * SECONDS_PER_SEGMENT * PRODUCTS_PER_ITERATION * max(iterations, 1) / max(threads, 1) / 60
 
 
 def check_workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid, device: torch.device,
@@ -215,7 +222,7 @@ def check_workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid
         check_grid_memory(level.grid, scene.num_views, device, budget,
                           "ladder.rungs" if level.downscale is not None else "grid.levels")
     found = workload(scene, options, grid, levels, native, device)
-    if budget is not None and found.bytes > budget:
+    if budget is not None and found.added > budget:
         raise MemoryBudgetError(refusal(scene, options, grid, found, budget, device))
     log.info("estimate: %s on %s", found, device)
     if found.samples > LONG_RUN_SAMPLES:
@@ -235,10 +242,10 @@ def refusal(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid, found
     phase = found.largest
     H, W = scene.image_size
     nx, ny, nz = grid.resolution
-    need = (f"{scene.num_views} views of {W}x{H} px on a {nx}x{ny}x{nz} grid need at most {format_bytes(found.bytes)} "
-            f"({format_bytes(found.baseline)} held now, {format_bytes(phase.bytes)} more while {phase.name})")
+    need = (f"{scene.num_views} views of {W}x{H} px on a {nx}x{ny}x{nz} grid need about {format_bytes(found.added)} "
+            f"more memory while {phase.name} (a peak of at most {format_bytes(found.bytes)})")
     free = memory_budget(device, None)
-    if options.projector.max_memory_gb is not None and (free is None or found.bytes <= free):
+    if options.projector.max_memory_gb is not None and (free is None or found.added <= free):
         return (f"projector.max_memory_gb: {need}, but it allows {format_bytes(budget)}; raise it (this machine has "
                 f"{'an unknown amount' if free is None else format_bytes(free)} free) or shrink the run")
     fixes = {"ladder.rungs": "coarser or fewer rungs (ladder.rungs)",

@@ -468,11 +468,17 @@ BYTES_PER_TRANSPOSE_ENTRY = 48
 
 @dataclass
 class OperatorMemory:
-    """Estimated size of the assembled operator: nonzeros, bytes kept (A and A^T), peak bytes."""
+    """Estimated size of the assembled operator: nonzeros, bytes kept (A, and A^T where the
+    adjoint needs it: ``copies``), peak bytes."""
 
     nnz: int
     operator_bytes: int
     peak_bytes: int
+    copies: int = 2
+
+    @property
+    def stored(self) -> str:
+        return "A and A^T" if self.copies == 2 else "A"
 
 
 def assembled_memory(
@@ -480,19 +486,41 @@ def assembled_memory(
 ) -> OperatorMemory:
     """Estimate what :func:`assemble` would store and its peak memory beyond what is held
     before it, from the exact assembly of :data:`ESTIMATE_RAYS` rays spread evenly over
-    ``rays``: the nonzeros scaled to every ray, A and A^T at (4 + 4) bytes each, and at the
-    peak the larger of one chunk's temporaries and one transpose block's."""
+    ``rays``: the nonzeros scaled to every ray, A (and A^T, off the compiled kernels) at
+    (4 + 4) bytes each, and at the peak the assembly's temporaries: the compiled march's block
+    scratch, or the torch path's chunk and a transpose block."""
     N, M = len(rays), int(voxel_index.numel())
+    device = rays.origins.device
+    copies = 1 if compiled.available(device) else 2
     if N == 0 or M == 0:
-        return OperatorMemory(0, 4 * (N + M + 2), 4 * (N + M + 2))
+        return OperatorMemory(0, 4 * (N + M + 2), 4 * (N + M + 2), copies)
     stride = max(1, N // ESTIMATE_RAYS)
-    subset = rays[torch.arange(0, N, stride, device=rays.origins.device)]
+    subset = rays[torch.arange(0, N, stride, device=device)]
     nnz = int(assemble(grid, subset, voxel_index, step).nnz * N / len(subset))
     entry = 4 + (4 if nnz < 2**31 else 8)  # value + column index, per copy
-    operator_bytes = 2 * entry * nnz + 4 * (N + M + 2)
-    chunk = min(nnz, ASSEMBLY_CHUNK_SAMPLES)  # about a sample per nonzero
-    transient = max(BYTES_PER_CHUNK_SAMPLE * chunk, BYTES_PER_TRANSPOSE_ENTRY * min(nnz, TRANSPOSE_BLOCK))
-    return OperatorMemory(nnz, operator_bytes, operator_bytes + transient)
+    operator_bytes = copies * entry * nnz + 4 * (N + M + 2)
+    if copies == 1:  # a block's scratch (8 entries a segment) and its rows' copies
+        transient = 2 * 8 * 8 * compiled.BLOCK_SEGMENTS
+    else:
+        chunk = min(nnz, ASSEMBLY_CHUNK_SAMPLES)  # about a sample per nonzero
+        transient = max(BYTES_PER_CHUNK_SAMPLE * chunk, BYTES_PER_TRANSPOSE_ENTRY * min(nnz, TRANSPOSE_BLOCK))
+    return OperatorMemory(nnz, operator_bytes, operator_bytes + transient, copies)
+
+
+#: CPU seconds per ray segment of a matrix-free product (measured 15-40 ns by the compiled
+#: march, hull cells and empty ones together, 33-60 ns by grid_sample, ScalarFlow 1/2 x 192)
+SECONDS_PER_SEGMENT = 50e-9
+#: products of A or A^T per solver iteration (the tv solver: 2 and its checks)
+PRODUCTS_PER_ITERATION = 2.6
+
+
+def matrix_free_seconds(rays: Rays, grid: VoxelGrid, step: float, voxel_index: torch.Tensor, iterations: int,
+                        threads: int) -> float:
+    """Wall seconds a matrix-free solve of ``iterations`` takes on ``threads`` cores: every
+    product marches the rays' segments inside the hull's support box again."""
+    _, _, first, end, _ = _segments(rays, grid, step, support_box(grid, voxel_index.to(rays.origins.device)))
+    segments = float((end - first).clamp_min(0).sum())
+    return segments * SECONDS_PER_SEGMENT * PRODUCTS_PER_ITERATION * max(int(iterations), 1) / max(int(threads), 1)
 
 
 class MatrixFreeOperator:

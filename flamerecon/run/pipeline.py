@@ -139,7 +139,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         export_run(run_dir, list(formats), float(cfg.export.get("iso", DEFAULT_ISO)))
         timing["export"] = time.perf_counter() - clock
     metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
-    metrics["memory"] = peak_memory(device)
+    metrics["memory"] = {**peak_memory(device), "bound": rec.memory_bound / 2**30}
     write_json_atomic(run_dir / "metrics.json", metrics)
     return logged(metrics)
 
