@@ -73,7 +73,7 @@ def test_each_frame_takes_its_rows_and_columns_from_the_region_entry_for_entry(t
         assert taken.operator.nnz > 1000
     assert counted["assembled"] >= 1 and counted["read"] >= 1  # the region served a later frame
     assert counted["assembled"] + counted["read"] == 3
-    entries = list((tmp_path / "synthetic" / "operators").iterdir())
+    entries = list((tmp_path / "operators").iterdir())
     assert len(entries) == 1  # one region for the capture, grown where a frame left it
 
 
@@ -81,7 +81,7 @@ def test_a_frame_that_leaves_the_region_grows_it(tmp_path, counted, monkeypatch)
     monkeypatch.setattr(capture_operator, "REGION_GROWTH", 0.0)  # the region: the first frame's hull only
     on, off = options(tmp_path, True), options(tmp_path, False)
     first = build(scene_at(0), on)
-    entry = next((tmp_path / "synthetic" / "operators").iterdir())
+    entry = next((tmp_path / "operators").iterdir())
     before = capture_operator.read_region(entry)["hull"].clone()
     later = scene_at(5)
     taken = build(later, on)
@@ -95,7 +95,7 @@ def test_a_frame_that_leaves_the_region_grows_it(tmp_path, counted, monkeypatch)
 def test_auto_reads_a_region_but_builds_none_and_false_neither(tmp_path, counted):
     scene = scene_at(0)
     build(scene, options(tmp_path, "auto"))
-    assert counted == {"assembled": 0, "read": 0} and not (tmp_path / "synthetic").exists()
+    assert counted == {"assembled": 0, "read": 0} and not (tmp_path / "operators").exists()
     build(scene, options(tmp_path, True))
     assert counted["assembled"] == 1
     again = build(scene, options(tmp_path, "auto"))

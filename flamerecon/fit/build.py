@@ -157,7 +157,7 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
                              options.solver.params.get("max_iters"))
     operator = None
     if backend == "assembled":  # the capture's region operator, where it serves
-        operator = capture_operator(scene, cams, grid, masks[train], rows, hull, step, options)
+        operator = capture_operator(cams, grid, masks[train], rows, hull, step, options)
     if operator is None:
         operator = make_operator(backend, grid, rays, voxel_index, step)
     now = time.perf_counter()

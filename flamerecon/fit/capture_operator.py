@@ -5,8 +5,8 @@ rows kept) and the hull (the columns kept) change.
 A *region* holds a frame's hull grown: the visual hull of its training silhouettes dilated by
 :data:`REGION_GROWTH` of the image's longer side (ScalarFlow's plume moves about 0.4% of it a
 frame, so the region holds the next few frames), and as rows every pixel whose ray meets that
-hull. Its operator is written to files beside the capture's calibration file
-(``<calibration folder>/<capture>/operators/<key>/``) block by block while it is assembled,
+hull. Its operator is written to files beside the captures' calibration files
+(``<calibration folder>/operators/<key>/``) block by block while it is assembled,
 the frame's own rows and columns taken from each block on the way. A later frame whose hull
 lies inside the region reads its rows and columns back
 (:func:`~flamerecon.operators.stored.read_selection`; a row the region lacks misses its hull,
@@ -21,8 +21,8 @@ old region and this frame's grown) when the frame leaves it; ``false`` neither, 
 ``FLAMERECON_CACHE=0`` does. The key holds what the weights depend on (the training cameras'
 values, image size, grid box and resolution, march step, rows, hull margin, the code of the
 march), so a changed camera, grid, image size or box never reads a stale region. A folder that
-cannot be written only costs the region's assembly. Entries beyond :data:`MAX_BYTES` per
-capture go, least recently used first.
+cannot be written only costs the region's assembly. Entries beyond :data:`MAX_BYTES` in all
+go, least recently used first.
 """
 
 from __future__ import annotations
@@ -38,12 +38,12 @@ import torch
 import torch.nn.functional as F
 
 from flamerecon.fit.options import ReconstructionOptions
+from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.hull import hull_footprint, visual_hull
 from flamerecon.operators import compiled, projector, stored
 from flamerecon.operators.projector import assembled_blocks, camera_rays
 from flamerecon.operators.sparse import CsrOperator, GrowingArray
-from flamerecon.scenes import Scene
 from flamerecon.scenes.cache import cache_dir, cache_home, digest, entry_key
 
 log = logging.getLogger(__name__)
@@ -51,21 +51,18 @@ log = logging.getLogger(__name__)
 #: the region's silhouettes are the frame's dilated by this share of the image's longer side
 #: (ScalarFlow frames 55-63 at 1/4: 3-4 px covers the next frame, 5 px two, 8-9 px four)
 REGION_GROWTH = 0.02
-#: bytes of region operators kept per capture; the least recently used beyond go
+#: bytes of region operators kept in all; the least recently used beyond go
 MAX_BYTES = 8 << 30
 REGION_FILE = "region.pt"
 
 
-def operators_folder(scene: Scene, options: ReconstructionOptions) -> Path | None:
-    """Where a capture's region operators go: ``operators/`` beside its calibration files
+def operators_folder(options: ReconstructionOptions) -> Path | None:
+    """Where region operators go: ``operators/`` beside the captures' calibration files
     (``calibration.folder``, else the cache's ``calibration/``); None when reuse is off."""
-    # imported here: capture_calibration imports build, which imports this module
-    from flamerecon.fit.capture_calibration import capture_name
-
     if not options.projector.reuse or cache_dir() is None:
         return None
     root = Path(options.calibration.folder) if options.calibration.folder else cache_home() / "calibration"
-    return root / capture_name(scene) / "operators"
+    return root / "operators"
 
 
 def region_key(cams, image_size: tuple[int, int], grid: VoxelGrid, step: float, options: ReconstructionOptions) -> str:
@@ -79,17 +76,20 @@ def region_key(cams, image_size: tuple[int, int], grid: VoxelGrid, step: float, 
     return entry_key("operator", content, [projector, compiled, stored, sys.modules[__name__]])
 
 
-def capture_operator(scene: Scene, cams, grid: VoxelGrid, masks: torch.Tensor, rows: torch.Tensor,
+def capture_operator(cams, grid: VoxelGrid, masks: torch.Tensor, rows: torch.Tensor,
                      hull: torch.Tensor, step: float, options: ReconstructionOptions) -> CsrOperator | None:
     """The frame's assembled operator (rows ``rows`` (T, H, W) bool x ``hull`` (nz, ny, nx)
     bool voxels) taken from its capture's region operator, when one holds its hull; with
     ``projector.reuse=true`` a region is assembled (or grown) and written first where none
     does (``masks`` (T, H, W): the frame's training silhouettes, which it grows). None where
-    there is no region to take it from, the compiled kernels do not serve (CUDA, no numba) or
-    reuse is off: the caller assembles the frame's own."""
-    folder = operators_folder(scene, options)
-    if folder is None or not compiled.available(masks.device):
+    there is no region to take it from, the compiled kernels are missing (no numba) or
+    reuse is off: the caller assembles the frame's own. The region is assembled and read on the
+    CPU (the compiled march); the frame's operator is moved to ``masks``' device."""
+    folder = operators_folder(options)
+    if folder is None or not compiled.available("cpu"):
         return None
+    device = masks.device  # the region is assembled and read on the CPU, the frame's operator moved here
+    masks, rows, hull, cams = masks.cpu(), rows.cpu(), hull.cpu(), cameras_to(cams, "cpu")
     entry = folder / region_key(cams, tuple(masks.shape[-2:]), grid, step, options)[:32]
     region = read_region(entry)
     if region is not None and inside(hull, region["hull"]):
@@ -97,7 +97,7 @@ def capture_operator(scene: Scene, cams, grid: VoxelGrid, masks: torch.Tensor, r
             found = stored.read_selection(entry, region["tag"], rows.reshape(-1)[region["rows"].reshape(-1)],
                                           column_map(region["hull"], hull))
             os.utime(entry / REGION_FILE)  # recently used: kept longest
-            return frame_operator(rows, region["rows"], hull, *found)
+            return frame_operator(rows, region["rows"], hull, *found).to(device)
         except (OSError, ValueError) as err:
             log.warning("operator cache: %s is unreadable (%s); assembling its region again", entry, err)
     if options.projector.reuse is not True:
@@ -110,7 +110,8 @@ def capture_operator(scene: Scene, cams, grid: VoxelGrid, masks: torch.Tensor, r
     region_hull = visual_hull(grid, cams, grown, int(options.hull.margin_voxels)) | hull
     if region is not None:  # grown, never shrunk: it keeps serving the frames it held
         region_hull |= region["hull"]
-    return assemble_region(entry, hull_footprint(grid, cams, region_hull), region_hull, cams, grid, step, rows, hull)
+    return assemble_region(entry, hull_footprint(grid, cams, region_hull), region_hull, cams, grid, step, rows,
+                           hull).to(device)
 
 
 def inside(part: torch.Tensor, whole: torch.Tensor) -> bool:

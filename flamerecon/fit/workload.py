@@ -221,6 +221,9 @@ def check_workload(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid
     for level in levels or []:
         check_grid_memory(level.grid, scene.num_views, device, budget,
                           "ladder.rungs" if level.downscale is not None else "grid.levels")
+    if options.calibration.refine != "none" and options.calibration.resolution:
+        check_grid_memory(VoxelGrid.from_box(grid.bbox_min, grid.bbox_max, options.calibration.resolution),
+                          scene.num_views, device, budget, "calibration.resolution")
     found = workload(scene, options, grid, levels, native, device)
     if budget is not None and found.added > budget:
         raise MemoryBudgetError(refusal(scene, options, grid, found, budget, device))
