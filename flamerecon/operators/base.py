@@ -32,6 +32,14 @@ def residual_gradient(op: LinearOperator, x: torch.Tensor, b: torch.Tensor) -> t
     return r, op.adjoint(r)
 
 
+def normal_product(op: LinearOperator, v: torch.Tensor) -> torch.Tensor:
+    """A^T A v (M, C), in one pass over an assembled A (its fused residual and gradient, b = 0)."""
+    fused = getattr(op, "residual_gradient", None)
+    if fused is None:
+        return op.adjoint(op.forward(v))
+    return fused(v, v.new_zeros(op.shape[0], v.shape[1]))[1]
+
+
 def _dot(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a.double() * b.double()).sum())
 
@@ -132,7 +140,7 @@ def _lanczos(op: LinearOperator, device, dtype: torch.dtype, iters: int, seed: i
     beta: list[float] = []
     theta = 0.0
     for _ in range(max(int(iters), 1)):
-        w = op.adjoint(op.forward(v.to(dtype))).double()
+        w = normal_product(op, v.to(dtype)).double()
         if beta:
             w -= beta[-1] * previous
         alpha.append(float((w * v).sum()))
