@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"velocity against the truth over the smoke: relative L2 {err['rel_l2']:.3f}, mean angle "
                   f"{err['angular_deg']:.1f} degrees (mean of {len(err['per_pair'])} frame pairs)")
         if args.figures is not None:
-            rate = flow.frame_rate or report.first["frame"].scene.meta.get("frame_rate")
+            rate = flow.frame_rate or report.first["frame"].scene.frame_rate
             for name, image in prediction_pictures(report, rate).items():
                 print(f"written: {write_png(args.figures / f'{name}.png', image)}")
         if args.out is not None:

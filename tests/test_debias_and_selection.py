@@ -13,11 +13,17 @@ from hydra import compose, initialize_config_dir
 from flamerecon.errors import ConfigError
 from flamerecon.evaluate.scores import render_scene_views, score_views
 from flamerecon.fit.debias import DebiasOptions, debias, training_gain
-from flamerecon.fit.weight_selection import RowSubset, SelectionOptions, fold_views, row_subset, select_weights
-from flamerecon.operators.sparse import CsrOperator
+from flamerecon.fit.weight_selection import (
+    RowSubset,
+    SelectionOptions,
+    fold_views,
+    row_subset,
+    select_weights,
+)
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.geometry.hull import hull_footprint
 from flamerecon.operators.projector import render_image
+from flamerecon.operators.sparse import CsrOperator
 from flamerecon.run.pipeline import choose_weights, prepare, solve
 from flamerecon.scenes import load_scene
 from flamerecon.solvers import Problem, make_solver

@@ -134,7 +134,7 @@ def silhouette_chords(scene: Scene, options: ReconstructionOptions, grid: VoxelG
     """(the operator's rows, their chords through the box in voxels of ``grid`` in all), at
     the scene's images: the training silhouettes' pixels (``projector.rays=hull`` adds the
     background pixels whose ray meets the hull: every box-crossing ray is counted then)."""
-    train, _ = split_views(scene, options, scored=False)
+    train, _ = split_views(scene, options)
     cams = camera_subset(scene.cameras, train)
     if options.projector.rays == "hull":
         keep = None

@@ -12,6 +12,7 @@ import math
 import numbers
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,15 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import value, wrong_type, wrong_value
+from flamerecon.geometry.axes import (
+    UP_AXES,
+    axis_index,
+    axis_name,
+    axis_sign,
+    azimuth_zero,
+    ground_directions,
+)
+from flamerecon.geometry.units import display_length
 from flamerecon.outputs.atomic import atomic_path, atomic_write_bytes, write_errno
 from flamerecon.outputs.export import voxel_size
 from flamerecon.rules import number
@@ -33,8 +43,33 @@ def to_display(image: torch.Tensor) -> torch.Tensor:
     return image.expand(3, -1, -1) if image.shape[0] == 1 else image[:3]
 
 
-#: heights and widths of the held-out figure's title strip and colour bar, pixels
+#: heights and widths of the held-out figure's title strip and colour bar, pixels, for panels of
+#: :data:`MIN_PANEL_PX` (:func:`figure_layout` scales them with the panels)
 TITLE_PX, BAR_PX, BAR_LABEL_PX = 14, 8, 40
+#: a held-out figure's panels are enlarged (by a whole factor, nearest neighbour) to at least this
+#: height, so that a small capture's figure reads; its titles and labels grow with taller panels
+MIN_PANEL_PX = 240
+
+
+@dataclass(frozen=True)
+class FigureLayout:
+    """How a held-out figure of (H, W) images is drawn: ``scale``, the whole factor its panels
+    are enlarged by; ``font`` (cv2's scale of its titles and labels), ``title_px`` (one title
+    line's height), ``bar_px`` and ``bar_label_px`` (the colour bar's and its labels' widths),
+    all in proportion to the enlarged panels' height (:data:`MIN_PANEL_PX` for the base sizes)."""
+
+    scale: int
+    font: float
+    title_px: int
+    bar_px: int
+    bar_label_px: int
+
+
+def figure_layout(height: int, width: int) -> FigureLayout:
+    """The :class:`FigureLayout` of a held-out figure of ``height`` x ``width`` images."""
+    scale = math.ceil(MIN_PANEL_PX / height) if height < MIN_PANEL_PX else 1
+    size = height * scale / MIN_PANEL_PX if height * scale > MIN_PANEL_PX else 1.0
+    return FigureLayout(scale, 0.35 * size, round(TITLE_PX * size), round(BAR_PX * size), round(BAR_LABEL_PX * size))
 
 
 def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "",
@@ -43,46 +78,61 @@ def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "
     """A held-out view read without a legend: panels "rendered <view>" (with its ``psnr`` and
     the black image's, dB, when given) | "captured" | "|error|, image units" (| "predicted
     sigma" with ``sigma``, the render's confidence image (C, H, W):
-    :mod:`flamerecon.evaluate.uncertainty`) under a title strip of :data:`TITLE_PX` (two lines
-    of it where a title is wider than its panel); the error and sigma (means over channels, in
-    the images' units, 1 = white) share the inferno colour map and its colour bar (0 at the
-    bottom, the largest of them at the top) to their right: (strip + H, n W + BAR_PX +
-    BAR_LABEL_PX, 3) uint8 with n = 3 or 4, from images (C, H, W) in [0, 1]."""
+    :mod:`flamerecon.evaluate.uncertainty`) under a title strip (two lines of it where a title
+    is wider than its panel); the error and sigma (means over channels, in the images' units, 1
+    = white) share the inferno colour map and its colour bar (0 at the bottom, the largest of
+    them at the top) to their right. Sized by :func:`figure_layout`: panels of at least
+    :data:`MIN_PANEL_PX` (a small capture enlarged), titles and labels in proportion: (strip +
+    sH, n sW + bar + labels, 3) uint8 with n = 3 or 4 and s the layout's scale, from images
+    (C, H, W) in [0, 1]."""
     r, c = to_display(rendered), to_display(captured)
     error = (rendered.detach().float().cpu().clamp(0, 1) - captured.detach().float().cpu()).abs().mean(0)
     spread = None if sigma is None else sigma.detach().float().cpu().mean(0)
     top = max(float(error.max()), 0.0 if spread is None else float(spread.max()))
-    H, W = error.shape
-    panels = [(r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
-              (c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8), to_rgb8(error[None], top or 1.0)]
-    ramp = np.linspace(top or 1.0, 0.0, H, dtype=np.float32)[:, None].repeat(BAR_PX, 1)
-    bar = np.zeros((H, BAR_PX + BAR_LABEL_PX, 3), np.uint8)
-    bar[:, :BAR_PX] = to_rgb8(ramp[None], top or 1.0)
+    layout = figure_layout(*error.shape)
+    k = layout.scale
+
+    def big(panel: np.ndarray) -> np.ndarray:
+        return panel if k == 1 else np.repeat(np.repeat(panel, k, 0), k, 1)
+
+    H, W = error.shape[0] * k, error.shape[1] * k
+    panels = [big((r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)),
+              big((c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)), big(to_rgb8(error[None], top or 1.0))]
+    ramp = np.linspace(top or 1.0, 0.0, H, dtype=np.float32)[:, None].repeat(layout.bar_px, 1)
+    bar = np.zeros((H, layout.bar_px + layout.bar_label_px, 3), np.uint8)
+    bar[:, :layout.bar_px] = to_rgb8(ramp[None], top or 1.0)
     scored = "" if psnr is None else f"{psnr:.2f} dB" + ("" if black is None else f" (black {black:.2f})")
+
+    def fits(text: str) -> bool:
+        return _text_width(text, layout.font) <= W - 4
+
     titles = [[f"rendered {view}".strip() + (f": {scored}" if scored else "")], ["captured"],
-              ["|error|, image units" if _text_width("|error|, image units") <= W - 4 else "|error|"]]
-    if scored and _text_width(titles[0][0]) > W - 4:  # a narrow panel: the scores on a second line
+              ["|error|, image units" if fits("|error|, image units") else "|error|"]]
+    if scored and not fits(titles[0][0]):  # a narrow panel: the scores on a second line
         titles[0] = [f"rendered {view}".strip(), scored]
     if spread is not None:
-        panels.append(to_rgb8(spread[None], top or 1.0))
-        titles.append(["predicted sigma" if _text_width("predicted sigma") <= W - 4 else "sigma"])
+        panels.append(big(to_rgb8(spread[None], top or 1.0)))
+        titles.append(["predicted sigma" if fits("predicted sigma") else "sigma"])
     n = len(panels)
-    strip = TITLE_PX * max(len(t) for t in titles)
+    line = layout.title_px
+    strip = line * max(len(t) for t in titles)
     figure = np.zeros((strip + H, n * W + bar.shape[1], 3), np.uint8)
     figure[strip:] = np.concatenate([*panels, bar], axis=1)
-    for k, lines in enumerate(titles):
-        for line, title in enumerate(lines):
-            cv2.putText(figure, title, (k * W + 2, (line + 1) * TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
-                        (255, 255, 255), 1, cv2.LINE_AA)
-    for y, text in ((strip + 9, f"{top:.2g}"), (strip + H - 2, "0")):
-        cv2.putText(figure, text, (n * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
-                    (255, 255, 255), 1, cv2.LINE_AA)
+    thick = max(1, round(layout.font / 0.7))
+    for j, lines in enumerate(titles):
+        for row, title in enumerate(lines):
+            cv2.putText(figure, title, (j * W + 2, (row + 1) * line - round(line * 0.3)), cv2.FONT_HERSHEY_SIMPLEX,
+                        layout.font, (255, 255, 255), thick, cv2.LINE_AA)
+    label = layout.font * 0.3 / 0.35
+    for y, text in ((strip + round(line * 0.65), f"{top:.2g}"), (strip + H - 2, "0")):
+        cv2.putText(figure, text, (n * W + layout.bar_px + 2, y), cv2.FONT_HERSHEY_SIMPLEX, label,
+                    (255, 255, 255), thick, cv2.LINE_AA)
     return figure
 
 
-def _text_width(text: str) -> int:
-    """Pixels a figure title takes (cv2's small font at 0.35)."""
-    return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
+def _text_width(text: str, font: float = 0.35) -> int:
+    """Pixels a figure title takes (cv2's small font at ``font``)."""
+    return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font, 1)[0][0]
 
 
 def detail_comparison(images: Sequence[torch.Tensor], bands: Sequence[torch.Tensor],
@@ -140,43 +190,86 @@ def to_rgb8(image, vmax: float | None = None, colormap: int = cv2.COLORMAP_INFER
 
 
 def project_along(density, bbox_min, bbox_max, axis: str = "y") -> np.ndarray:
-    """Orthographic line integral of the density along world ``axis`` (world units), the
-    emission seen from far along that axis: (C, nz, ny, nx) -> (C, rows, cols).
+    """Orthographic line integral of the density along world ``axis`` (``x``, ``y``, ``z``, or
+    a signed name such as ``-z``: the same integral), the emission seen from far along that
+    axis (world units): (C, nz, ny, nx) -> (C, rows, cols).
 
     Remaining axes in array order: along y -> (C, nz, nx), along z -> (C, ny, nx),
     along x -> (C, nz, ny); rows grow downwards in the image.
     """
     vol = _numpy(density)
-    if axis not in _AXES:
-        raise ValueError(f"project_along: axis must be one of x, y, z, got {axis!r}")
-    step = voxel_size(bbox_min, bbox_max, vol.shape)["xyz".index(axis)]
-    return vol.sum(axis=1 + _AXES[axis]) * np.float32(step)
+    name = axis_name(axis)
+    if name is None:
+        raise ValueError(f"project_along: axis must be one of x, y, z (or {', '.join(UP_AXES)}), got {axis!r}")
+    step = voxel_size(bbox_min, bbox_max, vol.shape)[axis_index(name)]
+    return vol.sum(axis=1 + _AXES[name[-1]]) * np.float32(step)
 
 
-def top_view(density, bbox_min, bbox_max, up: str = "y", vmax: float | None = None) -> np.ndarray:
-    """The paper's Fig. 5: the density seen from above (along the ``up`` axis) as (H, W, 3)
-    uint8; log it every N iterations to watch the solve sharpen."""
-    return to_rgb8(project_along(density, bbox_min, bbox_max, up), vmax)
+def _up(up: str) -> str:
+    name = axis_name(up)
+    if name is None:
+        raise ValueError(f"up: must be one of {', '.join(UP_AXES)}, got {up!r}")
+    return name
 
 
-def top_view_figure(path: str | os.PathLike, density, bbox_min, bbox_max, up: str = "y", title: str = "") -> Path:
+def _array_axes(fixed: int) -> tuple[int, int]:
+    """The world axes (indices) of a volume's array dimensions left when world axis ``fixed`` is
+    summed or cut, in array order (z, y, x)."""
+    return tuple(a for a in (2, 1, 0) if a != fixed)
+
+
+def oriented(plane: np.ndarray, axes: tuple[int, int], rows: tuple[int, float], cols: tuple[int, float]) -> np.ndarray:
+    """A (..., A, B) array whose last two dimensions run along world axes ``axes`` (array order),
+    arranged so that its rows run along the signed world direction ``rows`` and its columns
+    along ``cols`` ((axis index, +-1.0) each, :func:`~flamerecon.geometry.axes.ground_directions`)."""
+    out = plane if tuple(axes) == (rows[0], cols[0]) else np.swapaxes(plane, -1, -2)
+    if rows[1] < 0:
+        out = np.flip(out, -2)
+    if cols[1] < 0:
+        out = np.flip(out, -1)
+    return np.ascontiguousarray(out)
+
+
+def _span(lo: np.ndarray, hi: np.ndarray, direction: tuple[int, float]) -> tuple[float, float]:
+    """The world coordinates a figure's axis runs through along the signed ``direction``."""
+    a, sign = direction
+    return (lo[a], hi[a]) if sign > 0 else (hi[a], lo[a])
+
+
+def top_view(density, bbox_min, bbox_max, up: str = "+y", vmax: float | None = None) -> np.ndarray:
+    """The paper's Fig. 5: the density seen from above (along the ``up`` axis, e.g. ``+z``) as
+    (H, W, 3) uint8, oriented by :func:`~flamerecon.geometry.axes.ground_directions` (a scene
+    turned to another up shows the same picture); log it every N iterations to watch the solve
+    sharpen."""
+    up = _up(up)
+    across, depth = ground_directions(up)
+    seen = project_along(density, bbox_min, bbox_max, up)
+    return to_rgb8(oriented(seen, _array_axes(axis_index(up)), depth, across), vmax)
+
+
+def top_view_figure(path: str | os.PathLike, density, bbox_min, bbox_max, up: str = "+y", title: str = "",
+                    unit: float | None = None) -> Path:
     """PNG of the paper's Fig. 5 read alone: the density seen from above (its line integral along
     the ``up`` axis, channels summed: what a camera far above would record, in image units) on
-    world-unit axes, with its colour bar and a title."""
+    axes in the scene's length ``unit`` (metres per world unit; None: world units), with its
+    colour bar and a title."""
     try:
         from matplotlib.figure import Figure
     except ImportError as err:
         raise ImportError(f"top_view.png needs matplotlib; {_INSTALL_HINT}") from err
-    seen = project_along(density, bbox_min, bbox_max, up).sum(axis=0)  # rows, cols in array order
-    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
-    rows_axis, cols_axis = ("xyz".index(n) for n in sorted((n for n in "xyz" if n != up), key=lambda n: _AXES[n]))
+    up = _up(up)
+    across, depth = ground_directions(up)
+    seen = oriented(project_along(density, bbox_min, bbox_max, up).sum(axis=0), _array_axes(axis_index(up)),
+                    depth, across)
+    factor, length = display_length(unit, float(np.max(np.subtract(bbox_max, bbox_min))))
+    lo, hi = np.asarray(bbox_min, float) * factor, np.asarray(bbox_max, float) * factor
     fig = Figure(figsize=(5.2, 4.4), dpi=100, layout="constrained")
     ax = fig.subplots()
-    shown = ax.imshow(seen, origin="lower", extent=(lo[cols_axis], hi[cols_axis], lo[rows_axis], hi[rows_axis]),
+    shown = ax.imshow(seen, origin="lower", extent=(*_span(lo, hi, across), *_span(lo, hi, depth)),
                       cmap="inferno", vmin=0.0, interpolation="nearest")
-    ax.set_xlabel(f"{'xyz'[cols_axis]} (world units)")
-    ax.set_ylabel(f"{'xyz'[rows_axis]} (world units)")
-    fig.colorbar(shown, ax=ax, label=f"emission integrated along {up} (image units)")
+    ax.set_xlabel(f"{'xyz'[across[0]]} ({length})")
+    ax.set_ylabel(f"{'xyz'[depth[0]]} ({length})")
+    fig.colorbar(shown, ax=ax, label=f"emission integrated along {up[-1]} (image units)")
     ax.set_title(f"{title + chr(10) if title else ''}density seen from above, along {up} (the paper's Fig. 5)",
                  fontsize="medium")
     path = Path(path)
@@ -198,23 +291,47 @@ def centroid_index(density) -> tuple[int, int, int]:
     return round(i), round(j), round(k)
 
 
-def slice_panels(scalar: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: Sequence[int], up: str = "y"
-                 ) -> list[tuple[np.ndarray, int, int, str]]:
+def brightest_index(density) -> tuple[int, int, int]:
+    """The voxel (i, j, k) at the middle of the brightest region of the density (channels
+    summed, averaged over cubes of about a sixteenth of the grid's longest side, at least 3
+    voxels): where slices cut through smoke even when the centre of mass falls between two
+    lobes. The grid's centre for an empty volume."""
+    total = torch.from_numpy(np.ascontiguousarray(_numpy(density).sum(axis=0)))
+    if float(total.max()) <= 0:
+        nz, ny, nx = total.shape
+        return nx // 2, ny // 2, nz // 2
+    width = max(3, round(max(total.shape) / 16)) | 1  # odd: centred
+    box = torch.ones(1, 1, width, width, width, dtype=total.dtype)
+    sums = torch.nn.functional.conv3d(total[None, None], box, padding=width // 2)[0, 0]
+    counts = torch.nn.functional.conv3d(torch.ones_like(total)[None, None], box, padding=width // 2)[0, 0]
+    smooth = sums / counts  # the mean over the cube's voxels inside the grid
+    k, j, i = np.unravel_index(int(smooth.argmax()), tuple(total.shape))
+    return int(i), int(j), int(k)
+
+
+def slice_panels(scalar: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: Sequence[int], up: str = "+y"
+                 ) -> list[tuple[np.ndarray, tuple[int, float], tuple[int, float], str]]:
     """The three planes of a (nz, ny, nx) ``scalar`` through voxel ``index`` = (i, j, k), as
-    (image rows x cols, horizontal world axis, vertical world axis, title): the two vertical
-    planes with ``up`` upward, then the horizontal one seen from above."""
-    u = "xyz".index(up)
-    a, b = (w for w in range(3) if w != u)
+    (image rows x cols with row 0 at the bottom, horizontal direction, vertical direction,
+    title), the directions signed world axes (axis index, +-1.0): the two vertical planes with
+    ``up`` upward, then the horizontal one seen from above, oriented as
+    :func:`~flamerecon.geometry.axes.ground_directions` says."""
+    up = _up(up)
+    rise = (axis_index(up), axis_sign(up))
+    across, depth = ground_directions(up)
     centre = lo + (np.asarray(index) + 0.5) * voxel_size(lo, hi, scalar.shape)
 
-    def plane(h: int, v: int, fixed: int) -> np.ndarray:
+    def plane(h: tuple[int, float], v: tuple[int, float]) -> tuple[np.ndarray, str]:
+        fixed = 3 - h[0] - v[0]
         cut = np.take(scalar, int(index[fixed]), axis=_AXES["xyz"[fixed]])
-        rows_first = _AXES["xyz"[v]] < _AXES["xyz"[h]]  # the array axes left keep their order
-        return cut if rows_first else cut.T
+        name = f"{'xyz'[h[0]]}{'xyz'[v[0]]} plane at {'xyz'[fixed]} = {centre[fixed]:.3g}"
+        return oriented(cut, _array_axes(fixed), v, h), name
 
-    n = "xyz"
-    return [(plane(h, v, f), h, v, f"{n[h]}{n[v]} plane at {n[f]} = {centre[f]:.3g}")
-            for h, v, f in ((a, u, b), (b, u, a), (a, b, u))]
+    out = []
+    for h, v in ((across, rise), (depth, rise), (across, depth)):
+        picture, name = plane(h, v)
+        out.append((picture, h, v, name))
+    return out
 
 
 def slices_figure(
@@ -225,12 +342,14 @@ def slices_figure(
     index: Sequence[int] | None = None,
     channel: int | None = None,
     title: str = "",
-    up: str = "y",
+    up: str = "+y",
+    unit: float | None = None,
 ) -> Path:
-    """PNG of three planes through voxel ``index`` = (i, j, k) (default: the density's centre
-    of mass, :func:`centroid_index`), the two vertical ones with world axis ``up`` upward
-    (:func:`slice_panels`), world-unit axes, one shared colour bar. ``channel`` picks one
-    colour channel; default: their sum (total emission)."""
+    """PNG of three planes through voxel ``index`` = (i, j, k) (default: the middle of the
+    brightest region, :func:`brightest_index`), the two vertical ones with world axis ``up``
+    upward (:func:`slice_panels`), axes in the scene's length ``unit`` (metres per world unit;
+    None: world units), one shared colour bar. ``channel`` picks one colour channel; default:
+    their sum (total emission)."""
     try:
         from matplotlib.figure import Figure
     except ImportError as err:
@@ -238,24 +357,26 @@ def slices_figure(
     vol = _numpy(density)
     scalar = vol.sum(axis=0) if channel is None else vol[channel]
     nz, ny, nx = scalar.shape
-    i, j, k = centroid_index(scalar[None]) if index is None else (int(v) for v in index)
+    i, j, k = brightest_index(scalar[None]) if index is None else (int(v) for v in index)
     if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
         raise ValueError(f"slices_figure: index {(i, j, k)} outside the grid (nx, ny, nz) = "
                          f"{(nx, ny, nz)}")
-    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    factor, length = display_length(unit, float(np.max(np.subtract(bbox_max, bbox_min))))
+    lo, hi = np.asarray(bbox_min, float) * factor, np.asarray(bbox_max, float) * factor
     panels = slice_panels(scalar, lo, hi, (i, j, k), up)
     vmax = max(float(p[0].max()) for p in panels) or 1.0
     fig = Figure(figsize=(13, 4.2), dpi=100, layout="constrained")
     axes = fig.subplots(1, 3)
     for ax, (plane, h, v, label) in zip(axes, panels):
-        shown = ax.imshow(plane, origin="lower", extent=(lo[h], hi[h], lo[v], hi[v]),
+        shown = ax.imshow(plane, origin="lower", extent=(*_span(lo, hi, h), *_span(lo, hi, v)),
                           cmap="inferno", vmin=0.0, vmax=vmax, interpolation="nearest")
-        ax.set_xlabel(f"{'xyz'[h]} (world units)")
-        ax.set_ylabel(f"{'xyz'[v]} (world units)")
+        ax.set_xlabel(f"{'xyz'[h[0]]} ({length})")
+        ax.set_ylabel(f"{'xyz'[v[0]]} ({length})")
         ax.set_title(label)
     fig.colorbar(shown, ax=list(axes), shrink=0.9,
-                 label=("density" if channel is None else f"density, channel {channel}") + " (image units per world unit)")
-    where = "its centre of mass, voxel" if index is None else "voxel"
+                 label=("density" if channel is None else f"density, channel {channel}")
+                 + " (image units per world unit)")
+    where = "the middle of its brightest region, voxel" if index is None else "voxel"
     fig.suptitle(f"{title + ': ' if title else ''}density through {where} {(i, j, k)}")
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -387,8 +508,10 @@ def orbit_cameras(
 ):
     """Cameras on a circle around ``target`` looking at it (kornia batch, one per azimuth).
 
-    Azimuth turns about the ``up`` direction, 0 on the side of the world axis most
-    perpendicular to ``up`` (+z for up = +y) and 90 towards the next one (+x for up = +y);
+    Azimuth turns about the ``up`` direction, 0 on the side of :func:`azimuth_zero` (+z for up
+    = +y; for up along an axis, +y's +z turned as :func:`~flamerecon.geometry.axes.turn_from_y`
+    turns +y onto it, so a turned scene's orbits are the same) and 90 a right angle on about up
+    (+x for up = +y);
     elevation lifts the camera towards ``up``; distance in world units; ``fov_deg`` the
     vertical field of view. Pixel centres at +0.5 (flamerecon's convention).
     """
@@ -403,7 +526,7 @@ def orbit_cameras(
         raise wrong_value("orbit_cameras.up", up, "a non-zero direction")
     up_dir = np.asarray(up, dtype=np.float64)
     up_dir = up_dir / np.linalg.norm(up_dir)
-    first = np.eye(3)[_least_aligned(up_dir)]
+    first = azimuth_zero(up_dir)
     first = first - (first @ up_dir) * up_dir
     first /= np.linalg.norm(first)
     second = np.cross(up_dir, first)  # +x for up = +y, first = +z
@@ -452,11 +575,6 @@ def support_box(density, bbox_min, bbox_max, threshold: float = 0.01) -> tuple[n
     first = np.array([i.min(), j.min(), k.min()])
     last = np.array([i.max(), j.max(), k.max()]) + 1
     return lo + first * size, lo + last * size
-
-
-def _least_aligned(direction: np.ndarray) -> int:
-    """World axis most perpendicular to ``direction``; ties go to z, then x, then y."""
-    return min((2, 0, 1), key=lambda a: abs(direction[a]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -74,7 +74,7 @@ def flow_sweep(sweep_dir: str | os.PathLike, options: FlowOptions | None = None,
     try:
         for n, run in enumerate(runs[1:], 1):
             current = load_run(run.run_dir, device)
-            rate = options.frame_rate or previous.scene.meta.get("frame_rate")
+            rate = options.frame_rate or previous.scene.frame_rate
             if rate is None:
                 raise ConfigError(f"flow.frame_rate: {previous.folder}'s scene does not say its frame rate; give "
                                   "flow.frame_rate=FRAMES_PER_SECOND")

@@ -72,17 +72,19 @@ def run_options(cfg: DictConfig) -> RunOptions:
     return RunOptions(**{field: node[key] for field, (node, key) in where.items() if key in node})
 
 
-def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None) -> dict:
+def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None,
+                announce: str | None = None) -> dict:
     """:func:`reconstruct_in` after checking every option of ``cfg``
     (:func:`~flamerecon.fit.option_rules.check_options`), holding ``run_dir``'s lock
     (:func:`~flamerecon.run.lock.run_lock`: a second writer is refused)."""
     check_options(OmegaConf.to_container(cfg, resolve=True))
     check_exporters(cfg.get("export", {}).get("formats", []))
     with run_lock(run_dir):
-        return reconstruct_in(cfg, run_dir, resume, watch)
+        return reconstruct_in(cfg, run_dir, resume, watch, announce)
 
 
-def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None) -> dict:
+def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None,
+                   announce: str | None = None) -> dict:
     """Run the whole reconstruction for ``cfg`` and write the run folder; returns metrics.json's
     dict.
 
@@ -93,7 +95,8 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     or a photometry refit). Raises :class:`~flamerecon.errors.Interrupted` after
     checkpointing on SIGINT/SIGTERM, and :class:`~flamerecon.errors.SolveDiverged` after
     writing the last good iterate's outputs (a coarse level that diverges writes none).
-    ``watch``: see :class:`~flamerecon.run.hook.RunHook`.
+    ``watch``: see :class:`~flamerecon.run.hook.RunHook`; ``announce``: printed once the
+    checks made before any work have passed (the runner's composed config).
     """
     if cfg.scene.get("frames") is not None:  # consecutive frames solved jointly (time as a prior)
         from flamerecon.run.joint_frames import run_frames
@@ -102,7 +105,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
             raise ConfigError("uncertainty.enabled: the confidence is computed for one frame's reconstruction, "
                               "not for scene.frames solved jointly; run the frames one by one, or leave it off")
 
-        return logged(run_frames(cfg, run_dir, resume))
+        return logged(run_frames(cfg, run_dir, resume, announce))
     options = in_sweep(options_from_config(cfg))
     core.check_solver_name(options.solver.name)
     run_dir, device = start_run(cfg, run_dir)
@@ -113,7 +116,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     plan = [level.plan_entry() for level in core.levels_of(scene, options)]
     writer = RunWriter(str(run_dir))
     try:
-        hook = RunHook(run_dir, writer, run_options(cfg), plan, ckpt, watch)
+        hook = RunHook(run_dir, writer, run_options(cfg), plan, ckpt, watch, announce)
         rec = core.reconstruct(scene, options, hook, device)
         timing.update(rec.timing)
         if "solve" in timing:
@@ -140,6 +143,10 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         clock = time.perf_counter()
         export_run(run_dir, list(formats), float(cfg.export.get("iso", DEFAULT_ISO)))
         timing["export"] = time.perf_counter() - clock
+    if cfg.get("leave_one_out"):
+        clock = time.perf_counter()
+        metrics["leave_one_out"] = cross_check(cfg, run_dir, rec)
+        timing["leave_one_out"] = time.perf_counter() - clock
     metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
     metrics["memory"] = {**peak_memory(device), "bound": rec.memory_bound / 2**30}
     write_json_atomic(run_dir / "metrics.json", metrics)
@@ -156,6 +163,21 @@ def in_sweep(options: ReconstructionOptions) -> ReconstructionOptions:
     if options.projector.reuse != "auto" or not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
         return options
     return options.replace(projector=replace(options.projector, reuse=True))
+
+
+def cross_check(cfg: DictConfig, run_dir: Path, rec) -> dict:
+    """``leave_one_out=true``: each camera the run fitted left out in turn, the others fitted as
+    the run was (the held-out views, if any, stay out of every fold), scored
+    (:func:`~flamerecon.run.leave_one_out.leave_one_out`, into ``run_dir/leave_one_out/``);
+    returns its ``mean``, per-view scores and protocol for metrics.json."""
+    from flamerecon.run.leave_one_out import leave_one_out
+
+    scene = rec.scene
+    record = leave_one_out(cfg, run_dir / "leave_one_out", [scene.views[v] for v in rec.setup.train],
+                           [scene.views[v] for v in rec.setup.holdout], scene=load_scene(cfg.scene))
+    keep = ("psnr", "ssim", "detail", "psnr_black")
+    return {"mean": {k: record["mean"][k] for k in keep}, "protocol": record["protocol"],
+            "views": {name: {k: row[k] for k in keep} for name, row in record["views"].items()}}
 
 
 def logged(metrics: dict) -> dict:
