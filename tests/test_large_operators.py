@@ -179,3 +179,15 @@ def test_the_residual_and_its_gradient_in_one_pass_are_the_two_products(channels
     expected_r = dense @ x.double() - b.double()
     assert torch.allclose(r.double(), expected_r, rtol=1e-5, atol=1e-5)
     assert torch.allclose(grad.double(), dense.T @ expected_r, rtol=1e-4, atol=1e-4)
+
+
+def test_the_geometric_bound_holds_the_assembled_operator(box_grid):
+    """The bound that spares the sampled estimate of a small operator is never below it."""
+    rays = random_rays(box_grid, 600, seed=41)
+    for seed in (42, 43):
+        voxel_index = random_hull(box_grid, seed=seed)
+        op = assemble(box_grid, rays, voxel_index)
+        stored = op.nbytes() * (1 if not op.stores_transpose else 2)
+        assert projector.assembled_bound(box_grid, rays, voxel_index) >= stored > 0
+        assert projector.assembled_bound(box_grid, rays, voxel_index) >= assembled_memory(box_grid, rays,
+                                                                                        voxel_index).peak_bytes

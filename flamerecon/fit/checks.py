@@ -23,6 +23,7 @@ from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
 from flamerecon.machine import available_bytes, format_bytes
 from flamerecon.operators.projector import (
     Rays,
+    assembled_bound,
     assembled_memory,
     march_box,
     matrix_free_seconds,
@@ -206,6 +207,9 @@ def choose_backend(
         raise ConfigError(
             f"projector.backend: unknown backend '{requested}'; use auto, assembled or matrix_free"
         )
+    most = assembled_bound(grid, rays, voxel_index, step)
+    if most < LOUD_OPERATOR_BYTES and (budget is None or most <= budget):
+        return "assembled"  # surely small enough: no sampled estimate needed
     est = assembled_memory(grid, rays, voxel_index, step)
     if budget is None or est.peak_bytes <= budget:
         if est.peak_bytes >= LOUD_OPERATOR_BYTES:

@@ -481,6 +481,29 @@ class OperatorMemory:
         return "A and A^T" if self.copies == 2 else "A"
 
 
+#: new trilinear corners a line meets per voxel of length at most: 4 per cell face it crosses,
+#: |dx| + |dy| + |dz| <= sqrt(3) faces per voxel; and a ray's at most beyond that: the 8 of
+#: its first cell and 4 for each axis's rounding up of its crossings
+CORNERS_PER_VOXEL = 4 * 3**0.5
+CORNERS_PER_RAY = 8 + 3 * 4
+
+
+def assembled_bound(grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5) -> int:
+    """Peak bytes :func:`assemble` can take at most, from geometry alone (no sample assembled):
+    every ray's chord through the hull's support box times :data:`CORNERS_PER_VOXEL`, plus
+    :data:`CORNERS_PER_RAY` entries a ray, stored as :func:`assembled_memory` counts them, plus a block's temporaries."""
+    N, M = len(rays), int(voxel_index.numel())
+    if N == 0 or M == 0:
+        return 4 * (N + M + 2)
+    near, far = ray_box(rays, *support_box(grid, voxel_index.to(rays.origins.device)))
+    voxels = float((far - near).clamp_min(0).sum()) / float(grid.voxel_size().min())
+    nnz = CORNERS_PER_VOXEL * voxels + CORNERS_PER_RAY * N
+    copies = 1 if compiled.available(rays.origins.device) else 2
+    transient = 2 * 8 * 8 * compiled.BLOCK_SEGMENTS if copies == 1 else (
+        BYTES_PER_CHUNK_SAMPLE * ASSEMBLY_CHUNK_SAMPLES + BYTES_PER_TRANSPOSE_ENTRY * TRANSPOSE_BLOCK)
+    return int(copies * 8 * nnz + 4 * (N + M + 2) + transient)
+
+
 def assembled_memory(
     grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5
 ) -> OperatorMemory:
