@@ -5,6 +5,8 @@ them. Cutting a problem into pieces must not change a single entry."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -191,3 +193,18 @@ def test_the_geometric_bound_holds_the_assembled_operator(box_grid):
         assert projector.assembled_bound(box_grid, rays, voxel_index) >= stored > 0
         assert projector.assembled_bound(box_grid, rays, voxel_index) >= assembled_memory(box_grid, rays,
                                                                                         voxel_index).peak_bytes
+
+
+def test_an_assembled_operator_that_does_not_fit_is_refused_with_the_ways_out(box_grid, caplog):
+    from flamerecon.errors import MemoryBudgetError
+    from flamerecon.fit.checks import choose_backend
+
+    rays, voxel_index = random_rays(box_grid, 600, seed=44), random_hull(box_grid, seed=45)
+    with pytest.raises(MemoryBudgetError, match=r"^projector\.backend=assembled: the assembled operator for 600 rays "
+                       r"x \d+ hull voxels needs about .* nonzeros.*use projector\.backend=matrix_free.*grid\.resolution"):
+        choose_backend("assembled", box_grid, rays, voxel_index, 0.5, torch.device("cpu"), 1000)
+    caplog.set_level("WARNING")
+    assert choose_backend("auto", box_grid, rays, voxel_index, 0.5, torch.device("cpu"), 1000, 50) == "matrix_free"
+    assert re.search(r"using the matrix-free backend, whose products march every ray again: about .* for 50 "
+                     r"iterations here\. To keep the assembled one: free memory or raise projector\.max_memory_gb",
+                     caplog.text)
