@@ -113,12 +113,15 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
         raise SceneError(f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; {fix}")
 
 
-def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid) -> None:
+def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid,
+                      read_at: int | None = None) -> None:
     """What a reconstruction of ``scene`` with ``options`` on ``grid`` refuses before any work
     (each refusal one line): the split (``holdout``), a confidence asked for with fewer than two
-    training cameras, a ``calibration.file`` that cannot give the training cameras, the cameras
-    against the box (:func:`check_scene`) and the training views' silhouettes
-    (:func:`check_silhouettes`); the build checks them again on each level."""
+    training cameras, a ``calibration.file`` that cannot give the training cameras (at the
+    images it is read with: the scene's, or with ``read_at`` the ladder's coarsest rung's, that
+    downscale of the capture), the cameras against the box (:func:`check_scene`) and the
+    training views' silhouettes (:func:`check_silhouettes`); the build checks them again on
+    each level."""
     train, _ = scene.split(None if options.holdout is None else list(options.holdout))
     if options.uncertainty.enabled and len(train) < 2:
         raise ConfigError(
@@ -127,8 +130,12 @@ def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelG
             f"this run trains on {len(train)}; hold out fewer cameras (holdout=...), or leave uncertainty off")
     if options.calibration.file is not None:  # read (and refused) before any work, as the run reads it later
         path = options.calibration.file
-        cameras_from_records(read_camera_file(path)["cameras"], scene.views, scene.cameras.height,
-                             scene.cameras.width, f"calibration.file: {path}")
+        height, width = scene.cameras.height, scene.cameras.width
+        if read_at is not None:  # the capture's pixels (scene.downscale's factor back) over the rung's
+            own = int((scene.meta.get("config") or {}).get("downscale") or 1)
+            height, width = (torch.div(size * own, read_at, rounding_mode="floor") for size in (height, width))
+        cameras_from_records(read_camera_file(path)["cameras"], scene.views, height, width,
+                             f"calibration.file: {path}")
     check_scene(scene, grid)
     masks = scene.masks
     if masks is None:
