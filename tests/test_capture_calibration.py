@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -149,3 +150,18 @@ def test_a_calibration_file_is_checked_before_the_work_at_the_images_it_is_read_
     for opts, read_at in ((given["half"], None), (given["own"], 2)):
         with pytest.raises(ConfigError, match=r"^calibration\.file: .* pixels \(height, width\), the scene's"):
             check_before_work(scene, opts, grid, read_at)
+
+
+def test_reusing_the_captures_operator_does_not_key_its_calibration(scene):
+    """projector.reuse gives the same operator entry for entry, so a run with it off reads the
+    calibration file the default run wrote; the march's step, which changes the operator, is keyed."""
+    train, _ = scene.split(None)
+    grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 8)
+    base = options(refine="pose")
+
+    def key(**projector):
+        opts = base.replace(projector=replace(base.projector, **projector))
+        return capture_calibration.calibration_key(scene, train, grid, opts, CPU, {})
+
+    assert key(reuse=False) == key(reuse=True) == key(reuse="auto")
+    assert key(step=0.25) != key(step=0.5)
