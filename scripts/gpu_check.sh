@@ -9,8 +9,9 @@
 #
 # DATA: the ScalarFlow capture folder (info.json, train00..train04); default $FLAMERECON_DATA,
 # else .gpu_data/scalarflow_real in the repository, else ../shared/data/scalarflow_real. The
-# machine needs no network: modules missing from the Python it finds (kornia, hydra-core,
-# omegaconf, antlr4, ...) are installed from the wheels in .whl/ when that folder is there.
+# machine needs no network: modules missing from the Python it finds (kornia, kornia-rs,
+# hydra-core, omegaconf, antlr4, PyYAML, tqdm, ...) are installed from the wheels in .whl/ when
+# that folder is there (train.py imports every one of them).
 # Steps, each under its own time limit so that one slow step still leaves the others' figures:
 #   1. the default run at 1/4 (device=cuda): fits the capture's cameras once (the calibration file)
 #   2. the full-resolution frame, assembled operator (scene.downscale=1 grid.resolution=256)
@@ -33,8 +34,9 @@ say() { echo "$@" | tee -a "$LOG"; }
 
 missing=$(python - <<'PY'
 import importlib.util
-need = {"kornia": "kornia", "hydra": "hydra-core", "omegaconf": "omegaconf", "antlr4": "antlr4-python3-runtime",
-        "numba": "numba", "cv2": "opencv-python-headless", "tensorboard": "tensorboard", "tqdm": "tqdm"}
+need = {"kornia": "kornia", "kornia_rs": "kornia-rs", "hydra": "hydra-core", "omegaconf": "omegaconf",
+        "antlr4": "antlr4-python3-runtime", "yaml": "PyYAML", "tqdm": "tqdm", "numba": "numba",
+        "cv2": "opencv-python-headless", "tensorboard": "tensorboard"}
 print(" ".join(pkg for mod, pkg in need.items() if importlib.util.find_spec(mod) is None))
 PY
 )
