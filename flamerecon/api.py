@@ -21,8 +21,8 @@ from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.uncertainty import Confidence, load_confidence
 from flamerecon.fit.build import build, hull_values
 from flamerecon.fit.ensemble import confidence as solve_confidence
-from flamerecon.fit.flow import Flow, FlowOptions
-from flamerecon.fit.flow import estimate_flow as estimate_flow_core
+from flamerecon.dynamics.flow import Flow, FlowOptions
+from flamerecon.dynamics.flow import estimate_flow as estimate_flow_core
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
@@ -345,9 +345,9 @@ def estimate_flow(frames: Sequence[Reconstruction | Run], options: FlowOptions |
     :func:`~flamerecon.fit.reconstruct.reconstruct`, or run folders read back by
     :func:`~flamerecon.run.folder.load_run`; consecutive frames of one capture on one grid box,
     in order), each fitted to the next frame's training images
-    (:func:`flamerecon.fit.flow.estimate_flow`). A Run's operator is built again, one frame at a
+    (:func:`flamerecon.dynamics.flow.estimate_flow`). A Run's operator is built again, one frame at a
     time (a Reconstruction brings its own). The frame rate is ``options.frame_rate``, else the
-    capture's. Returns a :class:`~flamerecon.fit.flow.Flow`: ``flow.pairs[i].u`` in cells per
+    capture's. Returns a :class:`~flamerecon.dynamics.flow.Flow`: ``flow.pairs[i].u`` in cells per
     frame, ``flow.velocity(i, "world")`` in world units per second."""
     if isinstance(frames, (Reconstruction, Run)) or not isinstance(frames, Sequence):
         raise wrong_type("estimate_flow.frames", frames, "a list of Reconstructions or Runs, consecutive frames")

@@ -1,4 +1,4 @@
-"""The flow of a reconstructed sequence (:mod:`flamerecon.fit.flow`, :mod:`flamerecon.operators.warp`):
+"""The flow of a reconstructed sequence (:mod:`flamerecon.dynamics.flow`, :mod:`flamerecon.operators.warp`):
 advection against the warp and exact shifts, divergence and curl against analytic fields, a
 known motion recovered through an identity "projector", the divergence penalty doing what it
 says, the synthetic plume's known velocity recovered from its images, the velocity files, and
@@ -15,7 +15,7 @@ import torch
 
 import flamerecon as fr
 from flamerecon.errors import ArgumentError, ArgumentTypeError
-from flamerecon.fit.flow import (
+from flamerecon.dynamics.flow import (
     FlowOptions,
     estimate_velocity,
     flow_statistics,
@@ -23,7 +23,7 @@ from flamerecon.fit.flow import (
     shift_residuals,
     uniform_velocity,
 )
-from flamerecon.fit.prediction import velocity_error
+from flamerecon.dynamics.prediction import velocity_error
 from flamerecon.operators import CsrOperator
 from flamerecon.operators.warp import advect_volume, curl, divergence, warp_volume
 from flamerecon.outputs.velocity import VelocityFileError, load_velocity, save_velocity

@@ -21,7 +21,7 @@ import yaml
 
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.fit.build import build
-from flamerecon.fit.flow import FlowOptions, cells_to_world, estimate_velocity, flow_statistics
+from flamerecon.dynamics.flow import FlowOptions, cells_to_world, estimate_velocity, flow_statistics
 from flamerecon.outputs.atomic import make_folder, write_json_atomic
 from flamerecon.outputs.figures import write_png
 from flamerecon.outputs.flow_figures import length_unit, streamlines_figure, velocity_slices_figure
@@ -36,7 +36,7 @@ FIGURES = "flow_figures"
 
 
 def flow_options(overrides: list[str]) -> FlowOptions:
-    """:class:`~flamerecon.fit.flow.FlowOptions` from command-line ``flow.KEY=VALUE`` overrides
+    """:class:`~flamerecon.dynamics.flow.FlowOptions` from command-line ``flow.KEY=VALUE`` overrides
     (values read as YAML), each checked by its rule."""
     known = list(FlowOptions.__dataclass_fields__)
     values = {}

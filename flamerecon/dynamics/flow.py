@@ -55,7 +55,7 @@ import torch.nn.functional as F
 
 from flamerecon.arguments import fields, instance, tensor, value, wrong_value
 from flamerecon.fit.build import Setup
-from flamerecon.fit.motion import _blur, control_shape
+from flamerecon.dynamics.motion import _blur, control_shape
 from flamerecon.fit.option_rules import check_section
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.base import LinearOperator

@@ -2,12 +2,12 @@
 
 Frames ``first - 1`` .. ``last + max(horizons)`` of a capture are reconstructed in turn
 (:func:`~flamerecon.fit.reconstruct.reconstruct`), the velocity of each consecutive pair fitted
-to the next frame's images (:func:`~flamerecon.fit.flow.estimate_velocity`, warm-started along
+to the next frame's images (:func:`~flamerecon.dynamics.flow.estimate_velocity`, warm-started along
 the sequence). From each frame t in [first, last], frame t+k is predicted for every horizon k
 by
 
 - ``flow``: frame t's density carried k frames by u_t, the velocity fitted from t to t+1
-  (:func:`~flamerecon.fit.flow.advect`);
+  (:func:`~flamerecon.dynamics.flow.advect`);
 - ``flow_causal``: the same with u_{t-1}, fitted from t-1 to t: a prediction that uses nothing
   after frame t (only where frame t-1 is in the capture);
 - ``persistence``: frame t's density unchanged;
@@ -35,7 +35,7 @@ import torch
 
 from flamerecon.device import resolve_device
 from flamerecon.evaluate.scores import render_scene_views, score_rendered
-from flamerecon.fit.flow import (
+from flamerecon.dynamics.flow import (
     FlowOptions,
     PairFlow,
     advect,
@@ -206,7 +206,7 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> d
     each held-out view of frame first + the longest horizon, captured beside every prediction
     (one brightness scale, the capture's peak white; each prediction titled with its PSNR)."""
     from flamerecon.evaluate.metrics import psnr
-    from flamerecon.fit.flow import cells_to_world
+    from flamerecon.dynamics.flow import cells_to_world
     from flamerecon.outputs.figures import montage, to_rgb8
     from flamerecon.outputs.flow_figures import (
         length_unit,
