@@ -17,12 +17,12 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_type, wrong_value
 from flamerecon.device import resolve_device
+from flamerecon.dynamics.flow import Flow, FlowOptions
+from flamerecon.dynamics.flow import estimate_flow as estimate_flow_core
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.uncertainty import Confidence, load_confidence
 from flamerecon.fit.build import build, hull_values
 from flamerecon.fit.ensemble import confidence as solve_confidence
-from flamerecon.dynamics.flow import Flow, FlowOptions
-from flamerecon.dynamics.flow import estimate_flow as estimate_flow_core
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction

@@ -32,8 +32,8 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 import numpy as np
 
-from flamerecon.errors import ConfigError
 from flamerecon.dynamics.motion import MotionOptions, estimate_window, prepare_window, solve_window
+from flamerecon.errors import ConfigError
 from flamerecon.run.cli import compose_train, frame_list, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config, resolve_device
 from flamerecon.scenes import load_scene

@@ -40,8 +40,8 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 # isort: split
 
-from flamerecon.errors import ArgumentError
 from flamerecon.dynamics.prediction import METHODS, predict_sequence, prediction_pictures
+from flamerecon.errors import ArgumentError
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.figures import write_png
 from flamerecon.run.cli import (

@@ -14,7 +14,6 @@ import pytest
 import torch
 
 import flamerecon as fr
-from flamerecon.errors import ArgumentError, ArgumentTypeError
 from flamerecon.dynamics.flow import (
     FlowOptions,
     estimate_velocity,
@@ -24,6 +23,7 @@ from flamerecon.dynamics.flow import (
     uniform_velocity,
 )
 from flamerecon.dynamics.prediction import velocity_error
+from flamerecon.errors import ArgumentError, ArgumentTypeError
 from flamerecon.operators import CsrOperator
 from flamerecon.operators.warp import advect_volume, curl, divergence, warp_volume
 from flamerecon.outputs.velocity import VelocityFileError, load_velocity, save_velocity

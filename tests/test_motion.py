@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import flamerecon as fr
-from flamerecon.errors import ArgumentError
 from flamerecon.dynamics.motion import MotionOptions, estimate_displacement, reconstruct_motion
+from flamerecon.errors import ArgumentError
 from flamerecon.operators import CsrOperator, dottest
 from flamerecon.operators.warp import ComposedOperator, RowStack, warp_matrix, warp_volume
 

@@ -54,8 +54,8 @@ import torch
 import torch.nn.functional as F
 
 from flamerecon.arguments import fields, instance, tensor, value, wrong_value
-from flamerecon.fit.build import Setup
 from flamerecon.dynamics.motion import _blur, control_shape
+from flamerecon.fit.build import Setup
 from flamerecon.fit.option_rules import check_section
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.base import LinearOperator

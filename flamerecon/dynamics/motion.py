@@ -45,7 +45,13 @@ from flamerecon.fit.debias import debias
 from flamerecon.fit.option_rules import check_section
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Fit, calibrated_scene, fit
-from flamerecon.operators.warp import ComposedOperator, RowStack, upsample_displacement, warp_matrix, warp_volume
+from flamerecon.operators.warp import (
+    ComposedOperator,
+    RowStack,
+    upsample_displacement,
+    warp_matrix,
+    warp_volume,
+)
 from flamerecon.scenes import Scene
 from flamerecon.solvers import Problem, lambda_max, make_solver
 from flamerecon.solvers.temporal import estimate_shift

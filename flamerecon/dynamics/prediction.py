@@ -34,7 +34,6 @@ import numpy as np
 import torch
 
 from flamerecon.device import resolve_device
-from flamerecon.evaluate.scores import render_scene_views, score_rendered
 from flamerecon.dynamics.flow import (
     FlowOptions,
     PairFlow,
@@ -44,6 +43,7 @@ from flamerecon.dynamics.flow import (
     smoke_mask,
     uniform_velocity,
 )
+from flamerecon.evaluate.scores import render_scene_views, score_rendered
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import mean_of, reconstruct
 from flamerecon.geometry.grid import VoxelGrid
@@ -205,8 +205,8 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> d
     slices and streamlines (world units per second at ``frame_rate``, else cells per frame), and
     each held-out view of frame first + the longest horizon, captured beside every prediction
     (one brightness scale, the capture's peak white; each prediction titled with its PSNR)."""
-    from flamerecon.evaluate.metrics import psnr
     from flamerecon.dynamics.flow import cells_to_world
+    from flamerecon.evaluate.metrics import psnr
     from flamerecon.outputs.figures import montage, to_rgb8
     from flamerecon.outputs.flow_figures import (
         length_unit,

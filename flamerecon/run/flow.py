@@ -19,9 +19,9 @@ from pathlib import Path
 
 import yaml
 
+from flamerecon.dynamics.flow import FlowOptions, cells_to_world, estimate_velocity, flow_statistics
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.fit.build import build
-from flamerecon.dynamics.flow import FlowOptions, cells_to_world, estimate_velocity, flow_statistics
 from flamerecon.outputs.atomic import make_folder, write_json_atomic
 from flamerecon.outputs.figures import write_png
 from flamerecon.outputs.flow_figures import length_unit, streamlines_figure, velocity_slices_figure
