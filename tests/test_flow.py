@@ -143,7 +143,7 @@ def test_uniform_shift_residuals_find_the_shift(tiny_setup):
 def test_flow_statistics_of_a_rigid_rotation():
     z, _, x = torch.meshgrid(*[torch.arange(n, dtype=torch.float64) for n in SHAPE], indexing="ij")
     u = 0.05 * torch.stack([-(z - 7), torch.zeros_like(x), x - 8])
-    relative, speed = flow_statistics(u, blobs(), FlowOptions(inflow=0.0))
+    relative, speed = flow_statistics(u, blobs(), FlowOptions(inflow=0.0), "y")
     assert relative < 1e-9
     assert 0 < speed < 0.05 * 10
 

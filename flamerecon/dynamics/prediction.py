@@ -14,6 +14,10 @@ by
 - ``shift``: frame t's density moved up by k times one speed fitted to the whole stretch of
   frames reconstructed (the speed, cells per frame, whose uniform shift explains the next
   frames' images best summed over every pair, searched on ``speeds``);
+- ``simulation``: frame t carried k frames by the buoyant, incompressible smoke simulator fitted
+  to the images of frames t - W + 1 .. t (:func:`~flamerecon.dynamics.assimilation.assimilate`,
+  W = ``simulation.window``, started from the flow of frames t - W -> t - W + 1), its source
+  held at frame t's: as ``flow_causal``, nothing after frame t is used;
 - ``reconstruction``: frame t+k's own reconstruction (what the cameras allow, not a prediction);
 - ``flow:<name>``: ``flow`` with other options (``variants``), to compare settings,
 
@@ -28,12 +32,14 @@ import math
 import resource
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
 from flamerecon.device import resolve_device
+from flamerecon.dynamics.assimilation import Assimilation, SimulationOptions, assimilate
+from flamerecon.dynamics.conventions import up_of
 from flamerecon.dynamics.flow import (
     FlowOptions,
     PairFlow,
@@ -50,7 +56,7 @@ from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.progress import Progress
 from flamerecon.scenes import Scene
 
-METHODS = ("flow", "flow_causal", "persistence", "shift", "reconstruction")
+METHODS = ("flow", "flow_causal", "simulation", "persistence", "shift", "reconstruction")
 SCORES = ("heldout_psnr", "heldout_ssim", "heldout_detail", "train_psnr", "train_ssim", "train_detail")
 #: the uniform shifts searched, cells per frame
 SPEEDS = tuple(round(0.05 * i, 2) for i in range(61))
@@ -105,45 +111,57 @@ class PredictionReport:
     velocity_errors: list[dict] = field(default_factory=list)
     timing: dict = field(default_factory=dict)
     first: dict = field(default_factory=dict)  # frame ``first``: its Frame, velocity u (cells/frame), predictions
+    simulations: list[dict] = field(default_factory=list)  # each start frame's assimilation record
+    simulation_velocity_errors: list[dict] = field(default_factory=list)  # its velocity at the start frame
 
     def as_dict(self) -> dict:
         """The JSON ``scripts/predict.py`` writes: ``horizons`` {"k": {method: {score: value}}}
         and the rest beside it."""
         out = {"horizons": {str(k): v for k, v in self.table.items()}, "shift_cells_per_frame": self.shift,
                "per_frame": {str(t): {str(k): v for k, v in row.items()} for t, row in self.per_frame.items()},
-               "flows": self.flows, "timing": self.timing}
-        if self.velocity_errors:
-            out["velocity_error"] = {"rel_l2": float(np.mean([e["rel_l2"] for e in self.velocity_errors])),
-                                     "angular_deg": float(np.mean([e["angular_deg"] for e in self.velocity_errors])),
-                                     "per_pair": self.velocity_errors}
+               "flows": self.flows, "simulations": self.simulations, "timing": self.timing}
+        for key, errors in (("velocity_error", self.velocity_errors),
+                            ("simulation_velocity_error", self.simulation_velocity_errors)):
+            if errors:
+                out[key] = {"rel_l2": float(np.mean([e["rel_l2"] for e in errors])),
+                            "angular_deg": float(np.mean([e["angular_deg"] for e in errors])), "per_pair": errors}
         return out
 
 
 def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOptions, flow: FlowOptions,
                      first: int, last: int, horizons: Sequence[int], device: torch.device | str | None = None,
                      true_velocity: Callable[[VoxelGrid], torch.Tensor] | None = None,
-                     speeds: Sequence[float] = SPEEDS, variants: Mapping[str, FlowOptions] | None = None
-                     ) -> PredictionReport:
+                     speeds: Sequence[float] = SPEEDS, variants: Mapping[str, FlowOptions] | None = None,
+                     simulation: SimulationOptions | None = None) -> PredictionReport:
     """Predictions from frames ``first`` .. ``last`` (module doc); ``load(t)`` gives frame t's
-    scene; ``true_velocity(grid)`` (cells per frame), when the truth is known, is compared with
-    every fitted velocity; ``variants`` {name: options}: more flows, each its own method
-    ``flow:<name>`` (the same frames, baselines and scores: a comparison of settings). Progress is
-    logged per frame."""
+    scene (frame ``last`` + the longest horizon is loaded first, so that a capture too short is
+    refused before any reconstruction); ``true_velocity(grid)`` (cells per frame), when the
+    truth is known, is compared with every fitted velocity; ``variants`` {name: options}: more
+    flows, each its own method ``flow:<name>`` (the same frames, baselines and scores: a
+    comparison of settings); ``simulation``: the simulator's options (None: no ``simulation``
+    method). Progress is logged per frame."""
     device = resolve_device(options.device if device is None else str(device))
     horizon = max(horizons)
-    start = max(first - 1, 0)
+    window = int(simulation.window) if simulation is not None else 0
+    start = max(first - max(window, 1), 0)
+    load(last + horizon)  # the capture's end, before any work
     frames: dict[int, Frame] = {}
     chains = {"flow": flow, **{f"flow:{name}": o for name, o in (variants or {}).items()}}
     fitted: dict[str, dict[int, PairFlow]] = {name: {} for name in chains}
     pairs = fitted["flow"]
     curves: list[list[float]] = []
     errors: list[dict] = []
+    simulated_errors: list[dict] = []
+    setups: dict[int, object] = {}  # the last ``window`` frames' setups, while a simulation may start there
+    fits: dict[int, Assimilation] = {}
     progress = Progress("predict: reconstructions and flows", last + horizon - start + 1, "frame")
     previous: dict[str, torch.Tensor | None] = dict.fromkeys(chains)
+    up = up_of(None, flow.up)
     for t in range(start, last + horizon + 1):
         clock = time.perf_counter()
         rec = reconstruct(load(t), options, device=device)
         setup = rec.setup
+        up = up_of(rec.scene, flow.up)
         frames[t] = Frame(rec.scene, rec.density.detach(), rec.grid, list(setup.train), list(setup.holdout),
                           setup.step, time.perf_counter() - clock)
         if t - 1 in frames:
@@ -156,10 +174,24 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
                 if true_velocity is not None:
                     errors.append({"frame": t - 1, **velocity_error(pair.u, true_velocity(rec.grid).to(pair.u),
                                                                     source)})
-            curves.append(shift_residuals(source, setup, speeds, flow.up))
+            curves.append(shift_residuals(source, setup, speeds, up))
+        if simulation is not None and t <= last:
+            setups[t] = setup
+            setups.pop(t - window, None)
+            span = min(window, t - start)
+            if t >= first and span >= 1:  # frames t - span .. t: nothing after t
+                init = pairs[t - span].control if t - span in pairs else None
+                fits[t] = assimilate([frames[s].density for s in range(t - span, t + 1)],
+                                     [setups[s] for s in range(t - span + 1, t + 1)],
+                                     replace(simulation, window=span), init)
+                if true_velocity is not None:
+                    simulated_errors.append({"frame": t, **velocity_error(
+                        fits[t].velocity().float(), true_velocity(rec.grid).to(pairs[t - 1].u), frames[t].density)})
         del rec, setup
         progress.update(t - start + 1, f"frame {t}: {frames[t].seconds:.1f} s"
-                        + (f", flow {pairs[t - 1].seconds:.1f} s" if t - 1 in pairs else ""))
+                        + (f", flow {pairs[t - 1].seconds:.1f} s" if t - 1 in pairs else "")
+                        + (f", simulation fitted in {fits[t].record['seconds']:.1f} s" if t in fits else ""))
+    setups.clear()
     shift = float(speeds[int(np.argmin(np.sum(curves, 0)))])
     methods = [*METHODS, *list(chains)[1:]]
     table: dict = {k: {m: {s: [] for s in SCORES} for m in methods} for k in horizons}
@@ -167,24 +199,33 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
     first_frame: dict = {}
     silhouette = options.silhouette.as_dict()
     scoring = Progress("predict: scoring", last - first + 1, "frame")
+    simulated_seconds = []
     for n, t in enumerate(range(first, last + 1)):
         x = frames[t].density
         per_frame[t] = {}
+        simulated = {}
+        if t in fits:
+            clock = time.perf_counter()
+            simulated = {k + 1: d for k, d in enumerate(fits[t].predict(x, horizon)) if k + 1 in horizons}
+            simulated_seconds.append((time.perf_counter() - clock) / horizon)
         for k in horizons:
             shape = tuple(x.shape[1:])
             found = {"flow": advect(x, pairs[t].u, k), "persistence": x,
-                     "shift": advect(x, uniform_velocity(shape, shift, flow.up, x.device), k),
+                     "shift": advect(x, uniform_velocity(shape, shift, up, x.device), k),
                      "reconstruction": frames[t + k].density}
             if t - 1 in pairs:
                 found["flow_causal"] = advect(x, pairs[t - 1].u, k)
+            if k in simulated:
+                found["simulation"] = simulated[k]
             found.update({name: advect(x, fitted[name][t].u, k) for name in list(chains)[1:]})
             per_frame[t][k] = {m: view_scores(d, frames[t + k], silhouette) for m, d in found.items()}
-            if t == first and k == horizon:
-                first_frame = {"frame": frames[t], "u": pairs[t].u, "target": frames[t + k], "horizon": k,
-                               "predictions": found}
+            if t == first:
+                first_frame.setdefault("predictions", {})[k] = found
             for m, scores in per_frame[t][k].items():
                 for s, v in scores.items():
                     table[k][m][s].append(v)
+        if t == first:
+            first_frame.update({"frame": frames[t], "u": pairs[t].u, "targets": {k: frames[t + k] for k in horizons}})
         scoring.update(n + 1, f"frame {t}")
     means = {k: {m: {s: float(np.mean(v)) for s, v in row.items()} for m, row in rows.items() if row["heldout_psnr"]}
              for k, rows in table.items()}
@@ -193,45 +234,74 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
     timing = {"reconstruction_s_per_frame": float(np.mean([f.seconds for f in frames.values()])),
               "flow_s_per_pair_warm": float(np.mean(warm)) if warm else math.nan,
               "flow_s_per_pair_cold": float(np.mean(cold)) if cold else math.nan,
+              "simulation_fit_s_per_start_frame": (float(np.mean([f.record["seconds"] for f in fits.values()]))
+                                                   if fits else math.nan),
+              "simulation_s_per_frame_ahead": float(np.mean(simulated_seconds)) if simulated_seconds else math.nan,
               "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
     records = [{**pairs[t].record(), **{f"{name}:residual": fitted[name][t].residual for name in list(chains)[1:]},
                 **{f"{name}:relative_divergence": fitted[name][t].relative_divergence for name in list(chains)[1:]}}
                for t in sorted(pairs)]
-    return PredictionReport(means, per_frame, shift, records, errors, timing, first_frame)
+    simulations = [{"frame": t, **fits[t].record} for t in sorted(fits)]
+    return PredictionReport(means, per_frame, shift, records, errors, timing, first_frame, simulations,
+                            simulated_errors)
 
 
-def prediction_pictures(report: PredictionReport, frame_rate: float | None) -> dict[str, np.ndarray]:
+def prediction_pictures(report: PredictionReport, frame_rate: float | None, speed_unit: str = "world units/s",
+                        length_unit: str = "units") -> dict[str, np.ndarray]:
     """The pictures of the first frame of ``report`` (H, W, 3) uint8 by name: its velocity's
-    slices and streamlines (world units per second at ``frame_rate``, else cells per frame), and
-    each held-out view of frame first + the longest horizon, captured beside every prediction
-    (one brightness scale, the capture's peak white; each prediction titled with its PSNR)."""
+    slices and streamlines (``speed_unit`` at ``frame_rate``, else cells per frame), and for
+    each horizon and held-out view, the view captured beside every prediction (one brightness
+    scale, the capture's peak white; each prediction titled with its PSNR)."""
     from flamerecon.dynamics.flow import cells_to_world
     from flamerecon.evaluate.metrics import psnr
     from flamerecon.outputs.figures import montage, to_rgb8
-    from flamerecon.outputs.flow_figures import (
-        length_unit,
-        streamlines_figure,
-        velocity_slices_figure,
-    )
+    from flamerecon.outputs.flow_figures import streamlines_figure, velocity_slices_figure
 
     found = report.first
-    frame, target, k = found["frame"], found["target"], found["horizon"]
+    frame = found["frame"]
     t = int(frame.scene.meta.get("frame", 0))
     world = frame_rate is not None
     u = cells_to_world(found["u"], frame.grid, frame_rate) if world else found["u"]
-    unit = "" if world else " (cells, per frame)"
+    unit = f" ({speed_unit})" if world else " (cells, per frame)"
     args = (frame.density.cpu().numpy(), u.cpu().numpy(), frame.grid.bbox_min, frame.grid.bbox_max)
-    length = length_unit(frame.scene.name)
-    out = {f"velocity_slices_{t:04d}": velocity_slices_figure(*args, f"frame {t} -> {t + 1}{unit}", length),
-           f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}", length)}
-    for v in target.holdout:
-        captured = target.scene.images[v]
-        top = float(captured.max().clamp_min(1e-6))
-        tiles, labels = [to_rgb8(captured, top)], [f"captured {target.scene.views[v]}, frame {t + k} (peak = white)"]
-        for method, density in found["predictions"].items():
-            image = render_scene_views(density.float(), target.grid, target.scene, [v], target.step)[0]
-            tiles.append(to_rgb8(image, top))
-            score = psnr(target.scene.to_recorded(image), target.scene.recorded_view(v))
-            labels.append((method if method == "reconstruction" else f"{method}, from frame {t}") + f": {score:.2f} dB")
-        out[f"predictions_{t:04d}_k{k}_{target.scene.views[v]}"] = montage(tiles, len(tiles), labels)
+    out = {f"velocity_slices_{t:04d}": velocity_slices_figure(*args, f"frame {t} -> {t + 1}{unit}", length_unit),
+           f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}", length_unit)}
+    for k, predictions in found["predictions"].items():
+        target = found["targets"][k]
+        for v in target.holdout:
+            captured = target.scene.images[v]
+            top = float(captured.max().clamp_min(1e-6))
+            tiles = [to_rgb8(captured, top)]
+            labels = [f"captured {target.scene.views[v]}, frame {t + k} (peak = white)"]
+            for method, density in predictions.items():
+                image = render_scene_views(density.float(), target.grid, target.scene, [v], target.step)[0]
+                tiles.append(to_rgb8(image, top))
+                score = psnr(target.scene.to_recorded(image), target.scene.recorded_view(v))
+                name = method if method == "reconstruction" else f"{method}, {k} ahead"
+                labels.append(f"{name}: {score:.2f} dB")
+            out[f"predictions_{t:04d}_k{k:02d}_{target.scene.views[v]}"] = montage(tiles, len(tiles), labels)
     return out
+
+
+def prediction_series(report: PredictionReport, folder, method: str = "simulation") -> list:
+    """``.vti`` files of the first frame's ``method`` prediction and the reconstruction at each
+    horizon (``{method}_k{k}.vti``, ``reconstruction_k{k}.vti``) and a ``.pvd`` index per
+    method (time = frames ahead) in ``folder``; the paths written."""
+    from pathlib import Path
+
+    from flamerecon.outputs.export import write_pvd, write_vti
+
+    folder = Path(folder)
+    found, written = report.first, []
+    grid = found["frame"].grid
+    for name in (method, "reconstruction"):
+        entries = []
+        for k, predictions in found["predictions"].items():
+            if name in predictions:
+                file = write_vti(folder / f"{name}_k{k:02d}.vti", predictions[name].cpu().numpy(), grid.bbox_min,
+                                 grid.bbox_max)
+                entries.append((k, file.name))
+                written.append(file)
+        if entries:
+            written.append(write_pvd(folder / f"{name}.pvd", entries))
+    return written

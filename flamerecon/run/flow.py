@@ -19,6 +19,7 @@ from pathlib import Path
 
 import yaml
 
+from flamerecon.dynamics.conventions import up_of
 from flamerecon.dynamics.flow import FlowOptions, cells_to_world, estimate_velocity, flow_statistics
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.fit.build import build
@@ -35,18 +36,38 @@ FLOW_JSON = "flow.json"
 FIGURES = "flow_figures"
 
 
-def flow_options(overrides: list[str]) -> FlowOptions:
-    """:class:`~flamerecon.dynamics.flow.FlowOptions` from command-line ``flow.KEY=VALUE`` overrides
-    (values read as YAML), each checked by its rule."""
-    known = list(FlowOptions.__dataclass_fields__)
+def section_options(kind: type, section: str, overrides: list[str]):
+    """Options ``kind`` (a dataclass) from command-line ``SECTION.KEY=VALUE`` overrides (values
+    read as YAML), each checked by its rule."""
+    known = list(kind.__dataclass_fields__)
     values = {}
     for item in overrides:
         key, sep, text = item.partition("=")
-        name = key.removeprefix("flow.")
-        if not sep or not key.startswith("flow.") or name not in known:
-            raise ArgumentError(f"{item}: not a flow option; give flow.KEY=VALUE with KEY one of {known}")
+        name = key.removeprefix(f"{section}.")
+        if not sep or not key.startswith(f"{section}.") or name not in known:
+            raise ArgumentError(f"{item}: not a {section} option; give {section}.KEY=VALUE with KEY one of {known}")
         values[name] = yaml.safe_load(text)
-    return FlowOptions(**values)
+    return kind(**values)
+
+
+def flow_options(overrides: list[str]) -> FlowOptions:
+    """:class:`~flamerecon.dynamics.flow.FlowOptions` from command-line ``flow.KEY=VALUE`` overrides."""
+    return section_options(FlowOptions, "flow", overrides)
+
+
+def overrides_last(argv: list[str], options: tuple[str, ...]) -> list[str]:
+    """``argv`` with every KEY=VALUE override that follows one of ``options`` (which take a
+    list of values, e.g. ``--horizons 1 2 5``) moved to the end, where argparse reads overrides:
+    ``--horizons 1 5 scene=plume`` is horizons 1 and 5 and the override scene=plume."""
+    out, moved, inside = [], [], False
+    for item in argv:
+        if item.startswith("-"):
+            inside = item.split("=", 1)[0] in options
+        elif inside and "=" in item:
+            moved.append(item)
+            continue
+        out.append(item)
+    return out + moved
 
 
 def flow_sweep(sweep_dir: str | os.PathLike, options: FlowOptions | None = None, figures: list[int] | None = None,
@@ -83,7 +104,8 @@ def flow_sweep(sweep_dir: str | os.PathLike, options: FlowOptions | None = None,
             control = pair.control if options.warm_start else None
             world = cells_to_world(pair.u, previous.grid, float(rate))
             record = {**pair.record(), "next_frame": frames[n], "frame_rate": float(rate),
-                      "mean_speed_world": flow_statistics(world, previous.density, options)[1]}
+                      "mean_speed_world": flow_statistics(world, previous.density, options,
+                                                          up_of(previous.scene, options.up))[1]}
             save_velocity(previous.folder / VELOCITY_FILE, world.cpu().numpy(), previous.grid.bbox_min,
                           previous.grid.bbox_max, frames[n - 1], float(rate), {**record, "options": options.as_dict()})
             writer.scalars(frames[n - 1], {"mean_speed": record["mean_speed_world"],
