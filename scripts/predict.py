@@ -49,7 +49,12 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 from flamerecon.dynamics.assimilation import SimulationOptions
 from flamerecon.dynamics.conventions import frame_rate_of, speed_unit
-from flamerecon.dynamics.prediction import METHODS, predict_sequence, prediction_pictures, prediction_series
+from flamerecon.dynamics.prediction import (
+    METHODS,
+    predict_sequence,
+    prediction_pictures,
+    prediction_series,
+)
 from flamerecon.errors import ArgumentError
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.figures import write_png

@@ -71,6 +71,7 @@ from flamerecon.operators.warp import (
 from flamerecon.progress import Progress
 from flamerecon.rules import integer
 
+
 @dataclass(frozen=True)
 class FlowOptions:
     """How a velocity is fitted (module doc): ``control`` cells of its finest control grid
