@@ -56,6 +56,7 @@ from flamerecon.dynamics.prediction import (
     prediction_series,
 )
 from flamerecon.errors import ArgumentError
+from flamerecon.fit.option_rules import MAX_STEPS
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.outputs.figures import write_png
 from flamerecon.run.cli import (
@@ -66,9 +67,10 @@ from flamerecon.run.cli import (
     run_script,
     script_parser,
 )
-from flamerecon.run.flow import flow_options, overrides_last, section_options
+from flamerecon.run.flow import flow_options, parse_with_overrides, section_options
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
+from flamerecon.scenes.base import SceneError
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,10 +87,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="write here FIRST's velocity (slices, streamlines) and its held-out predictions")
     parser.add_argument("overrides", nargs="*",
                         help="train.py overrides (default scene=scalarflow), flow.KEY=VALUE and simulation.KEY=VALUE")
-    args = parser.parse_args(overrides_last(sys.argv[1:] if argv is None else list(argv), ("--horizons",)))
+    args = parse_with_overrides(parser, argv)
     if args.frames[0] > args.frames[1]:
         parser.error(f"argument --frames: FIRST {args.frames[0]} is after LAST {args.frames[1]}; give FIRST <= LAST")
     horizons = sorted(set(args.horizons))
+    if horizons[-1] > MAX_STEPS:
+        parser.error(f"argument --horizons: {horizons[-1]} frames ahead; at most {MAX_STEPS} (each a pass over the grid)")
 
     def run() -> None:
         flow = flow_options([o for o in args.overrides if o.startswith("flow.")])
@@ -110,6 +114,13 @@ def main(argv: list[str] | None = None) -> int:
             def truth(grid):
                 return true_velocity(grid, float(cfg.scene.rise), float(cfg.scene.swirl))
 
+        end = args.frames[1] + horizons[-1]
+        try:  # the capture's end, before any reconstruction
+            load_scene({**cfg.scene, "frame": end})
+        except SceneError as err:
+            raise ArgumentError(f"--frames/--horizons: predicting {horizons[-1]} frames ahead of frame {args.frames[1]} "
+                                f"needs frame {end}, which the capture does not have ({err}); give a smaller "
+                                "LAST or horizon") from None
         load = os.getloadavg()[0]
         print(f"load average {load:.1f} on {os.cpu_count()} CPUs at the start; frames {args.frames[0]}-"
               f"{args.frames[1]}, horizons {horizons}, scene {cfg.scene.name}, flow {flow.as_dict()}, simulation "

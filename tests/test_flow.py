@@ -181,8 +181,10 @@ def test_flow_options_are_checked():
 
 
 def test_estimate_flow_refuses_what_it_cannot_use():
+    with pytest.raises(ArgumentError, match="estimate_flow.frames: .*no such sweep folder"):
+        fr.estimate_flow("frames")  # a path: a multirun folder's
     with pytest.raises(ArgumentTypeError, match="estimate_flow.frames"):
-        fr.estimate_flow("frames")
+        fr.estimate_flow(3)
     with pytest.raises(ArgumentError, match="at least two"):
         fr.estimate_flow([])
     with pytest.raises(ArgumentTypeError, match=r"estimate_flow.frames\[0\]"):

@@ -217,7 +217,7 @@ def assimilate(densities: Sequence[torch.Tensor], setups: Sequence[Setup], optio
         loss, parts = 0.0, []
         for frame, (x, _) in zip(frames, simulate(c, buoyancy)):
             term = frame.loss(x, float(options.outside), norm)
-            parts.append(float(term) * frame.r0)
+            parts.append(float(term.detach()) * frame.r0)
             loss = loss + term / len(frames)
         return loss + float(options.smooth) * gradient_energy(c, spacing), parts
 

@@ -57,7 +57,7 @@ from flamerecon.arguments import fields, instance, tensor, value, wrong_value
 from flamerecon.dynamics.conventions import heights, up_of, up_vector
 from flamerecon.dynamics.motion import _blur, control_shape
 from flamerecon.fit.build import Setup
-from flamerecon.fit.option_rules import check_section
+from flamerecon.fit.option_rules import check_fields, check_section
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.base import LinearOperator
 from flamerecon.operators.warp import (
@@ -390,12 +390,13 @@ def cells_to_world(u: torch.Tensor, grid: VoxelGrid, frame_rate: float | None) -
 
 
 def advect(density: torch.Tensor, u: torch.Tensor, steps: int) -> torch.Tensor:
-    """``density`` (C, nz, ny, nx) carried ``steps`` >= 0 frames along the steady velocity
+    """``density`` (C, nz, ny, nx) carried ``steps`` >= 0 frames (at most
+    :data:`~flamerecon.fit.option_rules.MAX_STEPS`) along the steady velocity
     ``u`` (3, nz, ny, nx), cells per frame (:func:`~flamerecon.operators.warp.advect_volume`)."""
     density = tensor("advect.density", density, "(C, nz, ny, nx)", ndim=4, finite=True)
     u = tensor("advect.velocity", u, "(3, nz, ny, nx) in cells per frame", shape=(3, *density.shape[1:]),
                finite=True)
-    value("advect.steps", steps, integer(0))
+    check_fields("advect", {"steps": steps})  # an integer >= 0, at most MAX_STEPS frames
     return advect_volume(density, u.to(density.device, density.dtype), int(steps))
 
 

@@ -17,15 +17,6 @@ from flamerecon.outputs.export import voxel_size
 from flamerecon.outputs.figures import centroid_index
 
 _HINT = "pip install 'flamerecon[figures]'"
-#: the world's length unit of the scenes that say it (the others: "units")
-LENGTH_UNITS = {"scalarflow": "m", "pinf": "m"}
-
-
-def length_unit(scene_name: str) -> str:
-    """The name of a scene's world length unit for axis labels ("m" for ScalarFlow)."""
-    return LENGTH_UNITS.get(scene_name, "units")
-
-
 def _figure(width: float, height: float):
     try:
         from matplotlib.figure import Figure
