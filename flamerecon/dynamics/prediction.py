@@ -253,8 +253,6 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None, spee
     each horizon and held-out view, the view captured beside every prediction (one brightness
     scale, the capture's peak white; each prediction titled with its PSNR)."""
     from flamerecon.dynamics.flow import cells_to_world
-    from flamerecon.evaluate.metrics import psnr
-    from flamerecon.outputs.figures import montage, to_rgb8
     from flamerecon.outputs.flow_figures import streamlines_figure, velocity_slices_figure
 
     found = report.first
@@ -268,40 +266,51 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None, spee
            f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}", length_unit)}
     for k, predictions in found["predictions"].items():
         target = found["targets"][k]
+        named = {(m if m == "reconstruction" else f"{m}, {k} ahead"): d for m, d in predictions.items()}
         for v in target.holdout:
-            captured = target.scene.images[v]
-            top = float(captured.max().clamp_min(1e-6))
-            tiles = [to_rgb8(captured, top)]
-            labels = [f"captured {target.scene.views[v]}, frame {t + k} (peak = white)"]
-            for method, density in predictions.items():
-                image = render_scene_views(density.float(), target.grid, target.scene, [v], target.step)[0]
-                tiles.append(to_rgb8(image, top))
-                score = psnr(target.scene.to_recorded(image), target.scene.recorded_view(v))
-                name = method if method == "reconstruction" else f"{method}, {k} ahead"
-                labels.append(f"{name}: {score:.2f} dB")
-            out[f"predictions_{t:04d}_k{k:02d}_{target.scene.views[v]}"] = montage(tiles, len(tiles), labels)
+            out[f"predictions_{t:04d}_k{k:02d}_{target.scene.views[v]}"] = beside_capture(target, v, t + k, named)
     return out
+
+
+def beside_capture(target: Frame, view: int, number: int, densities: Mapping[str, torch.Tensor]) -> np.ndarray:
+    """(H, W, 3) uint8: camera ``view`` of frame ``target`` (frame ``number``) as captured,
+    then each of ``densities`` {label: (C, nz, ny, nx)} rendered there, one brightness scale
+    (the capture's peak white), each titled with its label and PSNR."""
+    from flamerecon.evaluate.metrics import psnr
+    from flamerecon.outputs.figures import montage, to_rgb8
+
+    captured = target.scene.images[view]
+    top = float(captured.max().clamp_min(1e-6))
+    tiles = [to_rgb8(captured, top)]
+    labels = [f"captured {target.scene.views[view]}, frame {number} (peak = white)"]
+    for label, density in densities.items():
+        image = render_scene_views(density.float(), target.grid, target.scene, [view], target.step)[0]
+        tiles.append(to_rgb8(image, top))
+        labels.append(f"{label}: {psnr(target.scene.to_recorded(image), target.scene.recorded_view(view)):.2f} dB")
+    return montage(tiles, len(tiles), labels)
 
 
 def prediction_series(report: PredictionReport, folder, method: str = "simulation") -> list:
     """``.vti`` files of the first frame's ``method`` prediction and the reconstruction at each
     horizon (``{method}_k{k}.vti``, ``reconstruction_k{k}.vti``) and a ``.pvd`` index per
     method (time = frames ahead) in ``folder``; the paths written."""
+    found, written = report.first, []
+    for name in (method, "reconstruction"):
+        entries = {k: p[name] for k, p in found["predictions"].items() if name in p}
+        written += density_series(folder, name, entries, found["frame"].grid, "k")
+    return written
+
+
+def density_series(folder, name: str, densities: Mapping[int, torch.Tensor], grid: VoxelGrid, tag: str) -> list:
+    """``{name}_{tag}{n:02d}.vti`` per density (C, nz, ny, nx) of ``densities`` {n: density} and
+    their ``{name}.pvd`` index (time = n) in ``folder``; the paths written ([] for none)."""
     from pathlib import Path
 
     from flamerecon.outputs.export import write_pvd, write_vti
 
-    folder = Path(folder)
-    found, written = report.first, []
-    grid = found["frame"].grid
-    for name in (method, "reconstruction"):
-        entries = []
-        for k, predictions in found["predictions"].items():
-            if name in predictions:
-                file = write_vti(folder / f"{name}_k{k:02d}.vti", predictions[name].cpu().numpy(), grid.bbox_min,
-                                 grid.bbox_max)
-                entries.append((k, file.name))
-                written.append(file)
-        if entries:
-            written.append(write_pvd(folder / f"{name}.pvd", entries))
-    return written
+    folder, written, entries = Path(folder), [], []
+    for n, density in densities.items():
+        file = write_vti(folder / f"{name}_{tag}{n:02d}.vti", density.cpu().numpy(), grid.bbox_min, grid.bbox_max)
+        entries.append((n, file.name))
+        written.append(file)
+    return [*written, write_pvd(folder / f"{name}.pvd", entries)] if entries else []

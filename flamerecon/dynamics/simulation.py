@@ -110,6 +110,17 @@ class Smoke:
         self.shape, self.up, self.buoyancy, self.peak = tuple(shape), up, buoyancy, float(peak)
         self.region, self.scheme, self.pad, self.incompressible = region, scheme, int(pad), incompressible
 
+    def transport(self, x: torch.Tensor, u: torch.Tensor, source: torch.Tensor | None = None) -> torch.Tensor:
+        """The density (C, nz, ny, nx) one frame on along a given velocity ``u`` (3, nz, ny, nx),
+        cells per frame (projected first where the smoke is ``incompressible``), the source
+        re-injected (steps 1 and 4 of the module doc, the velocity not evolved)."""
+        if self.incompressible:
+            u = project(u, self.pad)
+        x = advect_field(x, u, self.scheme, "zeros")
+        if source is not None and self.region is not None:
+            x = x + self.region * (source - x)
+        return x
+
     def step(self, x: torch.Tensor, u: torch.Tensor, source: torch.Tensor | None = None
              ) -> tuple[torch.Tensor, torch.Tensor]:
         """One frame (module doc): (x, u) -> (x', u'); ``source`` (C, nz, ny, nx): the density
