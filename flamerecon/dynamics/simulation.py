@@ -144,6 +144,28 @@ class Smoke:
             yield x, u
 
 
+def carry(x: torch.Tensor, velocities: list[torch.Tensor], region: torch.Tensor | None = None,
+          sources: list[torch.Tensor] | None = None) -> torch.Tensor:
+    """``x`` (C, nz, ny, nx) carried along the velocities (3, nz, ny, nx) of successive frames
+    (cells per frame), read once: every cell traced back through the last velocity, then the one
+    before, ..., and the density read where the trace ends (a long horizon is not blurred by an
+    interpolation per frame). Where a trace meets the source ``region`` after step n (going
+    back), the cell takes ``sources[n - 1]`` there instead (the smoke injected then)."""
+    shape = tuple(int(n) for n in x.shape[1:])
+    points = cell_points(torch.arange(math.prod(shape), device=x.device), shape, velocities[0].dtype)
+    value = torch.zeros(x.shape[0], points.shape[1], dtype=x.dtype, device=x.device)
+    open_ = torch.ones(points.shape[1], dtype=torch.bool, device=x.device)
+    for n in range(len(velocities), 0, -1):
+        if region is not None and sources is not None:
+            hit = open_ & (sample_points(region[None], points)[0] > 0.5)
+            if bool(hit.any()):
+                value[:, hit] = sample_points(sources[n - 1], points[:, hit]).to(x.dtype)
+                open_ &= ~hit
+        points = points - sample_points(velocities[n - 1], points, "border")
+    value[:, open_] = sample_points(x, points[:, open_]).to(x.dtype)
+    return value.reshape(x.shape)
+
+
 def inflow_region(density: torch.Tensor, up: str, fraction: float, level: float = 0.05,
                   grow: int = 1) -> torch.Tensor:
     """(nz, ny, nx) in {0, 1}: the source region, the cells of the bottom ``fraction`` of the box
