@@ -2,21 +2,23 @@
 PhiFlow, rendered emission-only into ScalarFlow's five cameras by an independent ray marcher,
 reconstructed by flamerecon, its flow and its simulator fitted, and both compared with the truth.
 
-    python scripts/simulated_plume.py --out plume.json [--frames 48] [--pairs 20 34] [--cache DIR] \
-        [--window 4] [--figures DIR] [flow.KEY=VALUE ...] [simulation.KEY=VALUE ...]
+    python scripts/simulated_plume.py --out plume.json [--frames 44] [--pairs 14 28] [--cache DIR] \
+        [--window 4] [--cells 64 96 64] [scene=scalarflow, train.py overrides] [flow.KEY=VALUE ...] \
+        [simulation.KEY=VALUE ...]
 
 The truth: PhiFlow (``pip install phiflow``, a bench extra; its NumPy backend and conjugate
-gradient pressure solve) simulates smoke on 64 x 96 x 64 cells filling ScalarFlow's box (metres,
-y up; closed sides and floor, open top), dt = 1/60 s (two steps a frame at 30 frames per second):
-semi-Lagrangian velocity, MacCormack density, buoyancy 1.5 m/s^2 per unit of density along +y,
+gradient pressure solve) simulates smoke on 64 x 96 x 64 cells (``--cells``) filling the scene's
+box (ScalarFlow's by default: metres, y up; closed sides and floor, open top), dt = 1/30 s (one step a frame at 30 frames per second):
+semi-Lagrangian velocity, MacCormack density, buoyancy 3 m/s^2 per unit of density along +y,
 and a flickering Gaussian source near the floor (its rate varies frame to frame, so the column
-carries puffs). Each frame's density is rendered into the capture's five cameras at 1/4
-resolution (480 x 270, the capture's own calibration: exact cameras) by a ray marcher written
+carries puffs). Each frame's density is rendered into the scene's cameras (ScalarFlow's five at
+1/4 resolution, 480 x 270, the capture's own calibration: exact cameras) by a ray marcher written
 here with SciPy (rays through pixel centres, trilinear samples every half cell, not flamerecon's
 projector), scaled once so that the last frame's brightest pixel is 0.8, plus sensor noise.
 
-flamerecon then reconstructs every frame (the ``scalarflow`` preset, its camera refinement and
-ladder off, train02 held out) and fits the velocity of each frame pair in PAIRS (``fr.estimate_flow``'s
+flamerecon then reconstructs every frame (the train.py config of the overrides, by default
+``scene=scalarflow``'s, its camera refinement and ladder off, the scene's held-out camera: train02)
+and fits the velocity of each frame pair in PAIRS (``fr.estimate_flow``'s
 fit, warm-started, ``flow.*`` options) and the simulator of issue 37 (``simulation.*``
 options; the window of ``--window`` frames before each pair's first frame). Each velocity (cells
 per frame) is compared with PhiFlow's at the cell centres, interpolated onto the reconstruction
@@ -48,19 +50,27 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 import numpy as np
 import torch
 
-from flamerecon.run.cli import at_least, output_file, output_folder, run_script, script_parser
+from flamerecon.run.cli import (
+    at_least,
+    compose_train,
+    output_file,
+    output_folder,
+    run_script,
+    script_parser,
+)
 from flamerecon.run.flow import flow_options, parse_with_overrides, section_options
+from flamerecon.run.pipeline import options_from_config
+from flamerecon.scenes import load_scene
 
-RESOLUTION = (64, 96, 64)  # x, y, z
 FPS = 30.0
-SUBSTEPS = 2
-BUOYANCY = 1.5  # m/s^2 per unit of density
+SUBSTEPS = 1
+BUOYANCY = 3.0  # m/s^2 per unit of density
 SEED = 3
 
 
-def simulate_phiflow(box_min, box_max, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """PhiFlow's plume (module doc): densities (F, nz, ny, nx) and cell-centre velocities
-    (F, 3, nz, ny, nx) in m/s, frames 0 .. F-1 at :data:`FPS`."""
+def simulate_phiflow(box_min, box_max, frames: int, cells: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """PhiFlow's plume (module doc) on ``cells`` (x, y, z): densities (F, nz, ny, nx) and
+    cell-centre velocities (F, 3, nz, ny, nx) in m/s, frames 0 .. F-1 at :data:`FPS`."""
     try:
         from phi import flow as phi
         from phiml.backend._numpy_backend import NumPyBackend
@@ -70,7 +80,7 @@ def simulate_phiflow(box_min, box_max, frames: int) -> tuple[np.ndarray, np.ndar
     # phiml 1.16's sparse matrix build ravels indices in int32 and overflows above ~46,000 cells
     NumPyBackend.ravel_multi_index = lambda self, index, shape, mode="undefined": ravel(
         self, np.asarray(index, np.int64), shape, mode)
-    nx, ny, nz = RESOLUTION
+    nx, ny, nz = cells
     lo, hi = np.asarray(box_min, float), np.asarray(box_max, float)
     bounds = phi.Box(x=(lo[0], hi[0]), y=(lo[1], hi[1]), z=(lo[2], hi[2]))
     closed = phi.extrapolation.combine_sides(x=0, y=(0, phi.extrapolation.ZERO_GRADIENT), z=0)
@@ -92,7 +102,7 @@ def simulate_phiflow(box_min, box_max, frames: int) -> tuple[np.ndarray, np.ndar
             force = phi.resample(smoke * (0, BUOYANCY, 0), to=velocity)
             velocity = phi.advect.semi_lagrangian(velocity, velocity, dt) + force * dt
             velocity, pressure = phi.fluid.make_incompressible(
-                velocity, (), phi.Solve("scipy-CG", 1e-4, 1e-4, max_iterations=3000, x0=pressure, rank_deficiency=0))
+                velocity, (), phi.Solve("scipy-CG", 1e-3, 1e-3, max_iterations=3000, x0=pressure, rank_deficiency=0))
         densities.append(smoke.values.numpy("z,y,x"))
         velocities.append(np.moveaxis(velocity.at_centers().values.numpy("z,y,x,vector"), -1, 0))
         print(f"phiflow: frame {f + 1}/{frames}, peak density {densities[-1].max():.3f}, peak speed "
@@ -153,12 +163,15 @@ def velocity_errors(u: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) ->
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON here")
-    parser.add_argument("--frames", type=at_least(2), default=48, help="frames simulated (default 48)")
-    parser.add_argument("--pairs", type=at_least(0), nargs=2, default=[20, 34], metavar=("FIRST", "LAST"),
-                        help="frame pairs compared: FIRST -> FIRST+1 .. LAST -> LAST+1 (default 20 34)")
+    parser.add_argument("--frames", type=at_least(2), default=44, help="frames simulated (default 44)")
+    parser.add_argument("--pairs", type=at_least(0), nargs=2, default=[14, 28], metavar=("FIRST", "LAST"),
+                        help="frame pairs compared: FIRST -> FIRST+1 .. LAST -> LAST+1 (default 14 28)")
     parser.add_argument("--window", type=at_least(1), default=4, help="the simulator's window (default 4)")
     parser.add_argument("--cache", type=output_folder, default=None, help="keep PhiFlow's simulation here")
-    parser.add_argument("overrides", nargs="*", help="flow.KEY=VALUE and simulation.KEY=VALUE")
+    parser.add_argument("--cells", type=at_least(4), nargs=3, default=[64, 96, 64], metavar=("NX", "NY", "NZ"),
+                        help="PhiFlow's cells (default 64 96 64)")
+    parser.add_argument("overrides", nargs="*",
+                        help="train.py overrides (default scene=scalarflow), flow.KEY=VALUE and simulation.KEY=VALUE")
     args = parse_with_overrides(parser, argv)
     first, last = args.pairs
     if not first <= last or last + 10 >= args.frames or first < args.window:
@@ -180,17 +193,22 @@ def main(argv: list[str] | None = None) -> int:
         simulation = dataclasses.replace(section_options(
             SimulationOptions, "simulation", [o for o in args.overrides if o.startswith("simulation.")]),
             window=args.window)
-        load = os.getloadavg()[0]
-        print(f"load average {load:.1f} on {os.cpu_count()} CPUs at the start", flush=True)
-        base = fr.load_scene("scalarflow", frame=0)
+        given = [o for o in args.overrides if not o.startswith(("flow.", "simulation."))]
+        cfg = compose_train([*given, "calibration.refine=none", "ladder.rungs=[]"])
+        options = options_from_config(cfg)
+        base = load_scene({**cfg.scene, "frame": 0})
         box_min, box_max = base.bbox_min, base.bbox_max
+        cells = tuple(args.cells)
+        load = os.getloadavg()[0]
+        print(f"load average {load:.1f} on {os.cpu_count()} CPUs at the start; PhiFlow {cells} cells in "
+              f"{cfg.scene.name}'s box, {args.frames} frames", flush=True)
         started = time.perf_counter()
         cached = args.cache / "plume_phiflow.npz" if args.cache is not None else None
         if cached is not None and cached.is_file():
             with np.load(cached) as f:
                 densities, velocities = f["density"], f["velocity"]
         else:
-            densities, velocities = simulate_phiflow(box_min, box_max, args.frames)
+            densities, velocities = simulate_phiflow(box_min, box_max, args.frames, cells)
             if cached is not None:
                 np.savez(cached, density=densities, velocity=velocities)
         simulated_s = time.perf_counter() - started
@@ -206,10 +224,9 @@ def main(argv: list[str] | None = None) -> int:
             c = c * scale
             images[t] = np.clip(c + 0.005 * np.sqrt(1 + 4 * c) * rng.standard_normal(c.shape), 0, 1)
         rendered_s = (time.perf_counter() - clock) / len(clean)
-        options = fr.preset("scalarflow", "calibration.refine=none", "ladder.rungs=[]")
-
         def scene(t: int):
-            return dataclasses.replace(base, name="phiflow_plume", images=torch.from_numpy(images[t][:, None]).float(),
+            stack = torch.from_numpy(images[t][:, None]).float().expand(-1, base.images.shape[1], -1, -1)
+            return dataclasses.replace(base, name="phiflow_plume", images=stack.contiguous(), masks=None,
                                        response=None, recorded_images=None, source=f"PhiFlow plume frame {t}",
                                        meta={"frame": t, "frame_rate": FPS})
 
@@ -226,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         def truth_on_grid(t: int) -> tuple[torch.Tensor, torch.Tensor]:
             """PhiFlow's density (nz, ny, nx) and velocity (3, ...) in cells per frame on the grid."""
             lo = torch.tensor(box_min, dtype=torch.float64)
-            cell = (torch.tensor(box_max, dtype=torch.float64) - lo) / torch.tensor(RESOLUTION, dtype=torch.float64)
+            cell = (torch.tensor(box_max, dtype=torch.float64) - lo) / torch.tensor(cells, dtype=torch.float64)
             points = ((centres.reshape(-1, 3) - lo) / cell - 0.5).T  # (3, P) in PhiFlow's cells (x, y, z)
             rho = sample_points(torch.from_numpy(densities[t][None]).double(), points, "border")
             u = sample_points(torch.from_numpy(velocities[t]).double(), points, "border")
