@@ -28,6 +28,7 @@ from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
 from flamerecon.fit.uncertainty_options import UncertaintyOptions
+from flamerecon.geometry.axes import up_vector
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import camera_rays, integrate_dense, render_image
@@ -39,10 +40,11 @@ from flamerecon.outputs.export import (
     UNCERTAINTY_FILE,
     Density,
     export_density,
+    recorded_conventions,
     load_density,
     sigma_names,
 )
-from flamerecon.outputs.figures import _angles, orbit_cameras, write_png
+from flamerecon.outputs.figures import _angles, azimuth_zero, orbit_cameras, write_png
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.outputs.sequence import SweepError, find_frame_runs
 from flamerecon.resources import config_dir
@@ -198,7 +200,8 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
     """Write the density of ``result`` (a Reconstruction, a loaded Run, or a run folder or
     density.npz; or the confidence volume of a :func:`confidence`) for other tools as ``<stem>.<format>``: ``vti`` (ParaView), ``nrrd``, ``raw``
     (+ ``.raw.json``), the iso-surface mesh at ``iso`` times the peak density as ``ply`` and
-    ``obj`` (Blender, ParaView; ``mesh``: both), ``all``; returns the files written."""
+    ``obj`` (Blender, ParaView; ``mesh``: both), ``all``; returns the files written. Placed in
+    metres where the scene knows its unit (``scene.unit``), else in world units."""
     instance("export.result", result, (Reconstruction, Run, Confidence, str, os.PathLike),
              "a Reconstruction, a Run, a Confidence (its volume), or a run folder or density.npz")
     instance("export.stem", stem, (str, os.PathLike), "a path without suffix")
@@ -215,8 +218,11 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
     unknown = [name for name in names if name not in known]
     if unknown or not names:
         raise wrong_value("export.formats", formats, f"one or more of {known}")
+    unit = getattr(getattr(result, "scene", None), "unit", None)  # placed in metres where the scene knows its unit
     if isinstance(result, (str, os.PathLike)):
         volume = load_density(result)
+        folder = Path(result) if Path(result).is_dir() else Path(result).parent
+        unit = recorded_conventions(folder)["unit"]
     elif isinstance(result, Confidence):
         grid = result.grid
         volume = Density(result.volume().detach().cpu().numpy().astype(np.float32), np.array(grid.bbox_min),
@@ -230,7 +236,7 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
         raise wrong_value("export.stem", stem, f"a path in a folder ({Path(stem).parent} is a file)")
     make_folder(Path(stem).parent)
     names = sigma_names(volume.density.shape[0]) if isinstance(result, Confidence) else None
-    return export_density(volume, stem, formats, iso, names)
+    return export_density(volume, stem, formats, iso, names, unit)
 
 
 def view(result, port: int = 8080, host: str = "127.0.0.1", device: str = "auto"):
@@ -258,8 +264,8 @@ def framing_camera(result, azimuth_deg=0.0, elevation_deg: float = 15.0, width: 
                    fov_deg: float = 40.0) -> PinholeCamera:
     """Cameras that frame the flame of ``result`` (a Reconstruction or a loaded Run): on a circle
     around the density's support (voxels above 1% of the peak), at the distance where it fills
-    the ``fov_deg`` (vertical) view, upright as the scene's cameras stand (their mean up
-    direction); one per azimuth (degrees, 0 on the side of the first camera). A kornia batch
+    the ``fov_deg`` (vertical) view, upright along the scene's up axis (``scene.up``); one per
+    azimuth (degrees about that axis, 0 on the side of the first camera). A kornia batch
     for :func:`render`: ``fr.render(rec.density, rec.grid, fr.framing_camera(rec, [0, 90]))``."""
     instance("framing_camera.result", result, (Reconstruction, Run), "a Reconstruction or a Run")
     density = tensor("framing_camera.result.density", result.density, "(C, nz, ny, nx) on the result's grid",
@@ -272,10 +278,10 @@ def framing_camera(result, azimuth_deg=0.0, elevation_deg: float = 15.0, width: 
     near, far = emission_box(density.detach().float().cpu().numpy(), lo, hi)
     target = (near + far) / 2
     rotations = result.scene.cameras.extrinsics[:, :3, :3].double().cpu().numpy()
-    up = -rotations[:, 1, :].mean(0)
-    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 0 else np.array([0.0, 1.0, 0.0])
+    up = np.asarray(up_vector(result.scene.up))
     toward = -rotations[0, 2, :]  # from the box towards the first camera
-    axis = _ground_axis(up)
+    axis = azimuth_zero(up)
+    axis = (axis - (axis @ up) * up) / np.linalg.norm(axis - (axis @ up) * up)
     azimuths = _angles("framing_camera.azimuth_deg", azimuth_deg)
     azimuths = azimuths + float(np.degrees(np.arctan2(toward @ np.cross(up, axis), toward @ axis)))
     probe = orbit_cameras(azimuths, elevation_deg, 1.0, target, width, height, fov_deg, up)
@@ -313,13 +319,6 @@ def _fitting_distance(w2c: np.ndarray, near: np.ndarray, far: np.ndarray, target
         need = max(need, float(np.max(np.abs(x) * margin * focal / (width / 2) - z)),
                    float(np.max(np.abs(y) * margin * focal / (height / 2) - z)))
     return max(need, 1e-6 + float(np.max(-corners @ w2c[0, 2, :3])))
-
-
-def _ground_axis(up: np.ndarray) -> np.ndarray:
-    """orbit_cameras' azimuth 0: the world axis least along ``up``, flattened onto the ground."""
-    axis = np.eye(3)[min((2, 0, 1), key=lambda a: abs(up[a]))]
-    axis = axis - (axis @ up) * up
-    return axis / np.linalg.norm(axis)
 
 
 def save_image(path: str | os.PathLike, image: torch.Tensor, vmax: float | None = 1.0) -> Path:

@@ -9,8 +9,10 @@ Writes into RUN_DIR/renders/ (or --out):
   camera_<name>.png            one per camera of a calibration file (the run's cameras.json
                                format: name, K, world_to_camera, width, height)
   turntable.mp4, turntable.gif N views on a full circle
-  top_view.png, views_10.png, slices.png   the paper's Fig. 5 and 6 and orthogonal slices
-Nothing asked for means --figures.
+  top_view.png, views_10.png, slices.png   the paper's Fig. 5 and 6 and slices through the
+                                           brightest region
+Nothing asked for means --figures. Every figure and orbit stands on the run's up axis (its
+metrics.json's scene.up; --up overrides) and measures lengths in its unit where it is known.
 """
 
 from __future__ import annotations
@@ -34,9 +36,10 @@ import numpy as np
 import torch
 
 from flamerecon.device import resolve_device
+from flamerecon.geometry.axes import UP_AXES, axis_name, up_vector
 from flamerecon.geometry.cameras import make_cameras
 from flamerecon.outputs.atomic import make_folder
-from flamerecon.outputs.export import load_density
+from flamerecon.outputs.export import load_density, recorded_conventions
 from flamerecon.outputs.figures import (
     framing_distance,
     orbit_cameras,
@@ -54,8 +57,6 @@ from flamerecon.outputs.figures import (
 from flamerecon.outputs.names import file_stem
 from flamerecon.run.cli import output_folder, run_script, script_parser
 from flamerecon.scenes.calibration import check_intrinsics, check_rigid
-
-UP = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
 def read_cameras_json(path: Path, only: list[str] | None = None):
@@ -135,7 +136,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fov", type=float, default=40.0, help="vertical field of view, degrees")
     parser.add_argument("--elevation", type=float, default=15.0,
                         help="elevation of the turntable and the 10 views, degrees")
-    parser.add_argument("--up", choices=sorted(UP), default="y", help="world up axis")
+    parser.add_argument("--up", choices=["auto", *UP_AXES, "x", "y", "z"], default="auto",
+                        help="the world axis the flame rises along (default auto: the run's scene.up, "
+                             "from its metrics.json; +y for a run that recorded none)")
     parser.add_argument("--vmax", type=float, default=None,
                         help="value shown white (default: brightest pixel; 1 matches captured)")
     parser.add_argument("--fps", type=float, default=24.0)
@@ -159,8 +162,10 @@ def render(args: argparse.Namespace) -> list[Path]:
         raise ValueError(f"--fov: got {args.fov}; give a field of view between 0 and 180 degrees")
     density, lo, hi, _ = load_density(args.run_dir)
     volume = torch.from_numpy(density).to(device)
+    facts = recorded_conventions(args.run_dir)
+    axis = facts["up"] if args.up == "auto" else axis_name(args.up)
     out = make_folder(args.out or args.run_dir / "renders")
-    up = UP[args.up]
+    up = up_vector(axis)
     written: list[Path] = []
     for spec in args.camera:
         if spec.startswith("orbit:"):
@@ -186,7 +191,8 @@ def render(args: argparse.Namespace) -> list[Path]:
         written.append(write_gif(out / "turntable.gif", frames, min(args.fps, 25.0)))
     if args.figures or not (args.camera or args.turntable):
         try:
-            written.append(top_view_figure(out / "top_view.png", density, lo, hi, args.up, str(args.run_dir)))
+            written.append(top_view_figure(out / "top_view.png", density, lo, hi, axis, str(args.run_dir),
+                                           facts["unit"]))
         except ImportError as err:
             print(f"flamerecon: top_view.png skipped: {err}", file=sys.stderr)
         sheet = views_around(volume, lo, hi, 10, args.elevation, args.width, args.height,
@@ -194,7 +200,7 @@ def render(args: argparse.Namespace) -> list[Path]:
         written.append(write_png(out / "views_10.png", sheet))
         try:
             written.append(slices_figure(out / "slices.png", density, lo, hi,
-                                         title=str(args.run_dir), up=args.up))
+                                         title=str(args.run_dir), up=axis, unit=facts["unit"]))
         except ImportError as err:
             print(f"flamerecon: slices.png skipped: {err}", file=sys.stderr)
     return written

@@ -254,3 +254,35 @@ def test_export_config_group_names_known_formats(tmp_path, config):
     written = export_run(tmp_path, formats)
     assert {p.suffix for p in written} == {f".{f}" for f in formats} | (
         {".json"} if "raw" in formats else set())
+
+
+@needs_vtk
+def test_a_capture_with_a_unit_exports_its_placement_in_metres(tmp_path):
+    """export_density(unit=0.0005): origin, spacing, voxel size and mesh vertices in metres (a
+    0.5 mm world unit), values as density.npz's; NRRD says its space units, the raw header its
+    length unit."""
+    pytest.importorskip("nrrd")
+    pytest.importorskip("skimage")
+    import nrrd
+
+    from flamerecon.outputs.export import Density, export_density
+
+    z, y, x = np.meshgrid(*(np.linspace(-1, 1, n) for n in (5, 4, 3)), indexing="ij")
+    vol = np.exp(-2 * (x**2 + y**2 + z**2))[None].astype(np.float32)
+    unit = 0.0005
+    export_density(Density(vol, LO, HI, ["a"]), tmp_path / "m", ["vti", "nrrd", "raw", "obj"], unit=unit)
+    image, arrays = _read_vti(tmp_path / "m.vti")
+    np.testing.assert_allclose(image.GetSpacing(), voxel_size(LO, HI, vol.shape) * unit)
+    np.testing.assert_allclose(image.GetOrigin(), sample_origin(LO, HI, vol.shape) * unit)
+    np.testing.assert_array_equal(arrays["density"], vol[0].reshape(-1))
+    _, header = nrrd.read(str(tmp_path / "m.nrrd"))
+    assert list(header["space units"]) == ["m", "m", "m"]
+    np.testing.assert_allclose(header["space origin"], sample_origin(LO, HI, vol.shape) * unit)
+    raw_header = json.loads((tmp_path / "m.raw.json").read_text())
+    assert raw_header["length_unit"] == "m" and raw_header["metres_per_world_unit"] == unit
+    np.testing.assert_allclose(raw_header["voxel_size"], voxel_size(LO, HI, vol.shape) * unit)
+    lines = (tmp_path / "m.obj").read_text().splitlines()
+    assert "metres" in lines[0]
+    vertices = np.array([[float(v) for v in line.split()[1:]] for line in lines if line.startswith("v ")])
+    assert len(vertices) and (vertices >= LO * unit - 1e-9).all() and (vertices <= HI * unit + 1e-9).all()
+    assert vertices.max(0)[1] > 0.5 * HI[1] * unit  # spread through the box in metres, not shrunk to a corner

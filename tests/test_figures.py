@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import torch
 
+import flamerecon as fr
+from flamerecon.geometry.axes import turn_from_y, up_vector
 from flamerecon.geometry.cameras import camera_centers, project_points
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.export import save_density
@@ -20,6 +22,7 @@ from flamerecon.outputs.figures import (
     BAR_LABEL_PX,
     BAR_PX,
     TITLE_PX,
+    brightest_index,
     centroid_index,
     framing_distance,
     grid_of,
@@ -240,10 +243,11 @@ def test_slices_pass_through_the_centre_of_mass_upright():
     vol[0, 1, 5:7, 3] = 1.0  # a short upright bar off the box centre, at (i, k) = (3, 1), j = 5..6
     assert centroid_index(vol) in ((3, 6, 1), (3, 5, 1))
     panels = slice_panels(vol[0], LO, HI, centroid_index(vol), up="y")
-    assert [(h, v) for _, h, v, _ in panels] == [(0, 1), (2, 1), (0, 2)]  # y upward in the vertical planes
+    # y upward in the vertical planes, every axis running forward
+    assert [(h, v) for _, h, v, _ in panels] == [((0, 1.0), (1, 1.0)), ((2, 1.0), (1, 1.0)), ((0, 1.0), (2, 1.0))]
     for plane, h, v, title in panels:
         assert plane.max() == 1.0, title  # every plane cuts the bar
-        assert plane.shape == (vol.shape[3 - v], vol.shape[3 - h])  # rows along the vertical axis
+        assert plane.shape == (vol.shape[3 - v[0]], vol.shape[3 - h[0]])  # rows along the vertical axis
     assert panels[0][0][5:7, 3].tolist() == [1.0, 1.0]  # the bar stands up in the xy plane
 
 
@@ -260,7 +264,7 @@ def test_the_slices_figure_has_a_colour_bar(tmp_path, monkeypatch):
     assert [a.get_xlabel()[0] + a.get_ylabel()[0] for a in axes[:3]] == ["xy", "zy", "xz"]
     assert all(a.get_xlabel().endswith(" (world units)") for a in axes[:3])
     assert axes[3].get_ylabel() == "density (image units per world unit)"
-    assert "centre of mass" in made[0].get_suptitle()
+    assert "brightest region" in made[0].get_suptitle()
 
 
 def test_support_box_and_empty_volume():
@@ -353,3 +357,38 @@ def test_the_top_view_is_a_figure_with_axes_and_a_colour_bar(tmp_path):
     image = cv2.imread(str(path))
     assert image.shape == (440, 520, 3)  # a labelled figure, not the 8 x 10 projection blown up
     assert (image[..., 2].astype(int) - image[..., 0] > 60).any()  # the inferno colours of the density
+
+
+def test_slices_cut_the_brightest_region_not_the_empty_centre_of_mass():
+    """Two lobes side by side: the centre of mass falls in the empty gap between them, the
+    slices go through the brighter lobe."""
+    vol = np.zeros((1, 12, 12, 24), dtype=np.float32)
+    vol[0, 4:8, 4:8, 2:6] = 1.0
+    vol[0, 4:8, 4:8, 18:22] = 1.5
+    i, j, k = centroid_index(vol)
+    assert vol[0, k, j, i] == 0  # the gap
+    i, j, k = brightest_index(vol)
+    assert 18 <= i < 22 and 4 <= j < 8 and 4 <= k < 8
+    assert all(plane.max() > 0 for plane, *_ in slice_panels(vol[0], LO, HI, (i, j, k), up="+y"))
+
+
+@pytest.mark.parametrize("up", ["+z", "-x", "-y"])
+def test_a_scene_turned_to_another_up_draws_the_same_top_view_slices_and_orbits(up):
+    """The synthetic flame's truth turned from y-up to ``up`` (box and volume turned together):
+    the top view and the slices are the same pictures, and so are the orbit renders."""
+    scene = fr.load_scene("synthetic", width=40, height=30, phantom_resolution=32)
+    turned = fr.load_scene("synthetic", width=40, height=30, phantom_resolution=32, up=up)
+    box, box2 = (scene.bbox_min, scene.bbox_max), (turned.bbox_min, turned.bbox_max)
+    np.testing.assert_array_equal(top_view(turned.truth, *box2, up=up), top_view(scene.truth, *box, up="+y"))
+    index = brightest_index(scene.truth)
+    Q = turn_from_y(up).numpy()
+    centre = np.asarray(box[0]) + (np.asarray(index) + 0.5) * (np.subtract(box[1], box[0]) / scene.truth.shape[:0:-1])
+    moved = Q @ centre
+    index2 = tuple(int(n) for n in np.floor((moved - box2[0]) / (np.subtract(box2[1], box2[0]) / turned.truth.shape[:0:-1])))
+    one = slice_panels(scene.truth.sum(0).numpy(), np.asarray(box[0]), np.asarray(box[1]), index, "+y")
+    two = slice_panels(turned.truth.sum(0).numpy(), np.asarray(box2[0]), np.asarray(box2[1]), index2, up)
+    for (a, *_), (b, *_) in zip(one, two):
+        np.testing.assert_array_equal(a, b)
+    around = views_around(scene.truth, *box, n=4, width=24, height=16, columns=4)
+    around2 = views_around(turned.truth, *box2, n=4, width=24, height=16, columns=4, up=up_vector(up))
+    assert np.abs(around.astype(int) - around2.astype(int)).max() <= 2  # float noise of the renders

@@ -70,7 +70,9 @@ def test_the_example_is_the_synthetic_flame_as_its_own_capture():
     scene = fr.load_scene("opencv", root=str(EXAMPLE))
     torch.testing.assert_close(scene.cameras.intrinsics, synthetic.cameras.intrinsics, atol=1e-4, rtol=0)
     torch.testing.assert_close(scene.cameras.extrinsics, synthetic.cameras.extrinsics, atol=1e-6, rtol=0)
-    assert (scene.images - synthetic.images.clamp(0, 1)).abs().max() <= 0.5 / 255 + 1e-6  # 8-bit PNGs
+    # 8-bit PNGs: half a step of rounding, plus the render's own float noise, which moves a value
+    # lying near a half step across it (seen: 4e-5 with another thread count than the example's)
+    assert (scene.images - synthetic.images.clamp(0, 1)).abs().max() <= 0.5 / 255 + 1e-4
 
 
 # --- converters -------------------------------------------------------------------------------

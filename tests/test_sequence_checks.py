@@ -3,12 +3,13 @@ whose frames differ in box, grid or training cameras is refused by scripts/flow.
 naming the two frames and the field, before any velocity is fitted and with nothing written;
 predict.py checks the capture's length before reconstructing; an override after a list option
 is an override; advection is bounded like every iteration count; ``fr.estimate_flow`` takes a
-multirun folder's path and refuses a single run's clearly."""
+multirun folder's path and refuses a single run's clearly; cameras at two frame rates are named
+(the loader refuses them; tests/test_conventions.py reads them)."""
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.util
+import json
 import re
 import shutil
 import sys
@@ -18,8 +19,7 @@ import torch
 from omegaconf import OmegaConf
 
 import flamerecon as fr
-from flamerecon.dynamics.conventions import frame_rate_of
-from flamerecon.errors import ArgumentError, ConfigError
+from flamerecon.errors import ArgumentError
 from flamerecon.fit.option_rules import MAX_STEPS
 from flamerecon.run.pipeline import reconstruct
 from tests.helpers import FAST, REPO, tiny_config
@@ -100,8 +100,6 @@ API_CASES = {
                                      r"estimate_flow.frames\[1\] \(frame 1\): its grid box"),
     "estimate_flow of mixed cameras": (lambda s: fr.estimate_flow(s["holdout"]), ArgumentError,
                                        r"estimate_flow.frames\[1\] \(frame 1\): its training cameras"),
-    "cameras at two frame rates": (lambda s: frame_rate_of(dataclasses.replace(
-        fr.load_scene("plume", frame=0), meta={"frame_rates": {"cam00": 30.0, "cam01": 60.0}})), ConfigError, r"flow.frame_rate: the cameras run at different frame rates \(cam00 30, cam01 60 frames per "),
 }
 
 
@@ -117,18 +115,36 @@ def test_estimate_flow_takes_a_multirun_folder(sweeps):
     assert flow.frames == [0] and flow.pairs[0].u.shape == (3, *flow.grid.shape)
 
 
-# (script, argv, the line's message): overrides after a list option, a capture too short
+def two_rates(root) -> str:
+    """A PINF capture (frames 0 and 1) whose third camera runs at 60 frames per second, the others at 30."""
+    scene = fr.load_scene("synthetic", n_cameras=3, width=80, height=60, phantom_resolution=48)
+    entries = []
+    for i, name in enumerate(scene.views):
+        for frame in (0, 1):
+            fr.save_image(root / name / f"{frame:06d}.png", scene.images[i])
+        c2w = fr.geometry.cameras.opencv_w2c_to_opengl_c2w(scene.cameras.extrinsics[i]).tolist()
+        entries.append({"file_name": f"{name}.mp4", "camera_angle_x": 0.8, "camera_hw": [60, 80],
+                        "transform_matrix": c2w, "frame_rate": 30 if i < 2 else 60})
+    (root / "info.json").write_text(json.dumps({"train_videos": entries}))
+    return str(root)
+
+
+# (script, argv, the line's message): overrides after a list option, cameras at two frame rates
 SCRIPT_CASES = [
     ("predict", ["--frames", "1", "1", "--horizons", "1", "2", "scene=plume", "flow.control=1"],
      "flow.control: got 1"),
     ("predict", ["--frames", "1", "1", "--horizons", "1", "20000", "scene=plume"], "argument --horizons: 20000 "),
     ("flow", ["SWEEP", "--figures", "0", "flow.control=1"], "flow.control: got 1"),
+    ("predict", ["--frames", "0", "0", "--horizons", "1", "scene=scalarflow", "scene.root=TWO_RATES"],
+     "frame_rate: the cameras run at 30 and 60 frames per second"),
 ]
 
 
 @pytest.mark.parametrize(("name", "argv", "message"), SCRIPT_CASES, ids=[" ".join(a) for _, a, _ in SCRIPT_CASES])
-def test_an_override_after_a_list_option_is_an_override(name, argv, message, sweeps, capsys):
-    code = call(name, [a.replace("SWEEP", str(sweeps["good"])) for a in argv])
+def test_a_script_names_what_it_was_given(name, argv, message, sweeps, capsys, tmp_path):
+    argv = [a.replace("SWEEP", str(sweeps["good"])) for a in argv]
+    argv = [a.replace("TWO_RATES", two_rates(tmp_path)) if "TWO_RATES" in a else a for a in argv]
+    code = call(name, argv)
     out, err = capsys.readouterr()
     assert code == 2 and not out, out
     assert len(err.splitlines()) == 1 and err.startswith(ERROR) and message in err, err

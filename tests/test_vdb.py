@@ -178,3 +178,20 @@ def test_blender_renders_the_vdb_by_the_readmes_steps(tmp_path):
     image = cv2.imread(str(tmp_path / "flame.png"), cv2.IMREAD_GRAYSCALE).astype(float)
     assert image.shape == (64, 48)
     assert image[24:40, 16:32].mean() > 40 and image[:6, :6].mean() < 10
+
+
+def test_a_run_whose_scene_knows_its_unit_exports_a_vdb_in_metres(tmp_path):
+    """scene.unit (metres per world unit) places the VDB's voxels in metres: a 0.5 mm-unit
+    capture is millimetres tall in Blender, not metres; the values stay density.npz's."""
+    if openvdb_missing():
+        pytest.skip(openvdb_missing())
+    from flamerecon.run.pipeline import reconstruct
+
+    reconstruct(tiny_cfg("export=vdb", "++scene.unit=0.0005"), tmp_path)
+    saved = load_density(tmp_path)
+    C, nz, ny, nx = saved.density.shape
+    grid = read_with_openvdb(tmp_path / "density.vdb", (nx, ny, nz))["density"]
+    size = voxel_size(saved.bbox_min, saved.bbox_max, saved.density.shape)
+    np.testing.assert_allclose(grid["voxel"], size * 0.0005, rtol=1e-9)
+    np.testing.assert_allclose(grid["world0"], sample_origin(saved.bbox_min, saved.bbox_max, saved.density.shape) * 0.0005,
+                               rtol=0, atol=1e-12)

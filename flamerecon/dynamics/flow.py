@@ -54,10 +54,11 @@ import torch
 import torch.nn.functional as F
 
 from flamerecon.arguments import fields, instance, tensor, value, wrong_value
-from flamerecon.dynamics.conventions import heights, up_of, up_vector
+from flamerecon.dynamics.conventions import heights, up_of
 from flamerecon.dynamics.motion import _blur, control_shape
 from flamerecon.fit.build import Setup
 from flamerecon.fit.option_rules import check_fields, check_section
+from flamerecon.geometry.axes import up_vector
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.base import LinearOperator
 from flamerecon.operators.warp import (
@@ -400,13 +401,13 @@ def advect(density: torch.Tensor, u: torch.Tensor, steps: int) -> torch.Tensor:
     return advect_volume(density, u.to(density.device, density.dtype), int(steps))
 
 
-def uniform_velocity(shape: tuple[int, int, int], speed: float, up: str = "y", device=None) -> torch.Tensor:
+def uniform_velocity(shape: tuple[int, int, int], speed: float, up: str = "+y", device=None) -> torch.Tensor:
     """(3, nz, ny, nx): ``speed`` cells per frame along ``up`` everywhere."""
     direction = torch.tensor(up_vector(up), dtype=torch.float32, device=device) * float(speed)
     return direction.reshape(3, 1, 1, 1).expand(3, *shape).contiguous()
 
 
-def shift_residuals(source: torch.Tensor, target: Setup, speeds: Sequence[float], up: str = "y") -> list[float]:
+def shift_residuals(source: torch.Tensor, target: Setup, speeds: Sequence[float], up: str = "+y") -> list[float]:
     """||A S_v x - b||^2 / ||b||^2 for each uniform shift S_v of ``speeds`` cells per frame
     along ``up``: the data term of the baseline a fitted flow is compared with."""
     shape = tuple(target.grid.shape)

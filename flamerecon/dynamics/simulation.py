@@ -36,7 +36,8 @@ from collections.abc import Callable, Iterator
 import torch
 import torch.nn.functional as F
 
-from flamerecon.dynamics.conventions import heights, up_vector
+from flamerecon.dynamics.conventions import heights
+from flamerecon.geometry.axes import up_vector
 from flamerecon.operators.warp import cell_points, sample_points
 
 #: advection schemes

@@ -16,12 +16,22 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> floa
     return math.inf if mse == 0 else 10.0 * math.log10(max_val**2 / mse)
 
 
+#: the appearance-aligned PSNR is undefined (NaN) where either half of the captured image holds
+#: less than this share of its light: a gain fitted on a dark half, or scored on one, says nothing
+ALIGNED_MIN_SHARE = 0.2
+
+
 def psnr_aligned(pred: torch.Tensor, target: torch.Tensor, max_val: float = 1.0) -> float:
     """Appearance-aligned PSNR (NeRF in the Wild's protocol): one gain fitted by least squares
-    on the left half of the image (C, H, W), PSNR on the right half. Not the headline score: it
-    forgives a held-out camera's unknown exposure."""
+    on the left half of the image (C, H, W), PSNR on the right half; NaN where either half of
+    ``target`` holds less than :data:`ALIGNED_MIN_SHARE` of its light. Not the headline score:
+    it forgives a held-out camera's unknown exposure."""
     W = pred.shape[-1]
     left, right = slice(0, W // 2), slice(W // 2, W)
+    light = float(target.double().clamp_min(0).sum())
+    halves = (float(target[..., left].double().clamp_min(0).sum()), float(target[..., right].double().clamp_min(0).sum()))
+    if light <= 0 or min(halves) < ALIGNED_MIN_SHARE * light:
+        return math.nan
     p, t = pred[..., left].double(), target[..., left].double()
     den = float((p * p).sum())
     gain = float((p * t).sum()) / den if den > 0 else 1.0

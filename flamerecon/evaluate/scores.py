@@ -108,7 +108,10 @@ def native_scores(scene_cfg: Mapping, volume: torch.Tensor, grid: VoxelGrid, nam
 
 
 def render_scene_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
-    """Rendered images (len(views), C, H, W) of the density for the given view indices."""
+    """Rendered images (len(views), C, H, W) of the density for the given view indices (none:
+    an empty batch)."""
+    if not views:
+        return torch.zeros(0, volume.shape[0], *scene.image_size)
     cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
     return render_image(volume, grid, cams, step).cpu()
 
@@ -159,7 +162,10 @@ def undefined(scores: dict) -> None:
 def score_rendered(rendered: torch.Tensor, scene: Scene, views: list[int],
                    silhouette: dict | None = None) -> dict[str, dict[str, float]]:
     """:func:`score_views` of renders (V, C, H, W) of ``views``; with ``silhouette`` options
-    also inside the silhouette union (PSNR) and the captured silhouettes (detail)."""
+    also inside the silhouette union (PSNR) and the captured silhouettes (detail). No views:
+    an empty table."""
+    if not views:
+        return {}
     if silhouette is None:
         return score_views(rendered, scene, views)
     captured = captured_silhouettes(scene, views, silhouette)

@@ -87,10 +87,10 @@ def scene_grid(options: GridOptions, scene: Scene) -> VoxelGrid:
     return VoxelGrid.from_box(lo, hi, int(res) if isinstance(res, (int, float)) else list(res))
 
 
-def split_views(scene: Scene, options: ReconstructionOptions, scored: bool = True) -> tuple[list[int], list[int]]:
-    """(training, held-out) view indices of ``scene`` under ``options.holdout`` (``scored``: see
-    :meth:`~flamerecon.scenes.Scene.split`)."""
-    return scene.split(None if options.holdout is None else list(options.holdout), scored)
+def split_views(scene: Scene, options: ReconstructionOptions) -> tuple[list[int], list[int]]:
+    """(training, held-out) view indices of ``scene`` under ``options.holdout`` (see
+    :meth:`~flamerecon.scenes.Scene.split`; none held out: every camera fitted)."""
+    return scene.split(None if options.holdout is None else list(options.holdout))
 
 
 def scene_masks(scene: Scene, images: torch.Tensor, options: ReconstructionOptions) -> torch.Tensor:
@@ -101,17 +101,16 @@ def scene_masks(scene: Scene, images: torch.Tensor, options: ReconstructionOptio
 
 
 def build(scene: Scene, options: ReconstructionOptions, device: torch.device | str | None = None,
-          grid: VoxelGrid | None = None, scored: bool = True) -> Setup:
+          grid: VoxelGrid | None = None) -> Setup:
     """Split, silhouettes, visual hull, rays and the operator restricted to them, on ``grid``
-    (default: the options', :func:`scene_grid`), on ``device`` (default: ``options.device``);
-    ``scored=False``: no held-out view needed (a camera fit's density of every view). Sets
+    (default: the options', :func:`scene_grid`), on ``device`` (default: ``options.device``). Sets
     torch's thread count as ``options.threads`` says."""
     check_inputs("build", scene, options, device)
     instance("build.grid", grid, VoxelGrid, null=True)
     set_threads(options.threads)
     device = resolve_device(options.device if device is None else str(device))
     started = time.perf_counter()
-    train, holdout = split_views(scene, options, scored)
+    train, holdout = split_views(scene, options)
     grid = grid if grid is not None else scene_grid(options.grid, scene)
     check_scene(scene, grid)
     budget = memory_budget(device, options.projector.max_memory_gb)

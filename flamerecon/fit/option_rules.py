@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 from flamerecon.arguments import describe
 from flamerecon.errors import ArgumentError, ArgumentTypeError, ConfigError, FlameReconError
+from flamerecon.geometry.axes import UP_AXES
 from flamerecon.machine import cores, format_bytes, total_bytes
 from flamerecon.rules import (
     Check,
@@ -166,6 +167,7 @@ RULES: dict[str, Rule] = {
     "debug": Rule(boolean),
     "resume": Rule(text, null=True),
     "overwrite": Rule(boolean),
+    "leave_one_out": Rule(boolean),
     "grid.resolution": Rule(_resolution),
     "grid.bbox": Rule(_box, null=True),
     "grid.levels": Rule(list_of(_resolution, what="a list of grid sizes (ints or [nx, ny, nz])"),
@@ -301,6 +303,9 @@ RULES: dict[str, Rule] = {
     "scene.black_level": Rule(number(0, 1, hi_open=True)),
     "scene.bbox": Rule(_box, null=True),
     "scene.holdout": Rule(_views, null=True),
+    "scene.up": Rule(choice("auto", *UP_AXES, "x", "y", "z")),
+    "scene.unit": Rule(number(0, lo_open=True), null=True),
+    "scene.frame_rate": Rule(number(0, lo_open=True), null=True),
     **{f"scene.silhouette.{k}": rule for k, rule in SILHOUETTE.items()},  # the box estimate's
     "scene.n_cameras": Rule(integer(2)),
     "scene.width": Rule(integer(1)),

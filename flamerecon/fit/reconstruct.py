@@ -502,8 +502,7 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
             budget = refining.first_iterations if start is None else refining.solve_iterations
             if budget is not None and "max_iters" in fold.solver.params:
                 fold = fold.replace(solver=fold.solver.with_values(max_iters=budget))
-            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid,
-                          scored=False)
+            setup = build(replace(source, cameras=with_cameras(scene.cameras, views, cameras)), fold, device, grid)
             x0 = None if start is None else hull_values(start, grid, setup.voxel_index)
             fitted = fit(setup, fold, x0)
             if start is None and not chosen and fitted.selection is not None:

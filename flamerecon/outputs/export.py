@@ -266,9 +266,11 @@ def write_nrrd(
     bbox_max,
     names: Sequence[str] | None = None,
     encoding: str = "gzip",
+    units: str | None = None,
 ) -> Path:
     """NRRD volume; world placement in ``space origin`` (centre of voxel 0) and ``space
-    directions`` (one voxel step along x, y, z), in a plain 3-D space (no anatomical frame).
+    directions`` (one voxel step along x, y, z), in a plain 3-D space (no anatomical frame);
+    ``units`` (e.g. ``m``) names the length unit in ``space units``.
 
     One channel: a 3-D volume, NRRD axes (x, y, z). Several: a 4-D one whose first (fastest)
     NRRD axis is the channel, kind ``RGB-color`` for three channels, ``vector`` otherwise;
@@ -290,6 +292,7 @@ def write_nrrd(
         "space origin": sample_origin(bbox_min, bbox_max, vol.shape),
         "encoding": encoding,
         "channels": ",".join(names),
+        **({"space units": [units] * 3} if units else {}),
     }
     if num_channels == 1:
         data = vol[0].transpose(2, 1, 0)  # NRRD index order, fastest first: (x, y, z)
@@ -317,10 +320,12 @@ def write_raw(
     bbox_max,
     names: Sequence[str] | None = None,
     views: Sequence[str] = (),
+    unit: float | None = None,
 ) -> tuple[Path, Path]:
     """Little-endian float32 bytes of the (C, nz, ny, nx) array (x fastest) at ``path`` and a
-    JSON header at ``path + ".json"`` with shape, axis order, world placement and channel names.
-    Returns (raw path, header path)."""
+    JSON header at ``path + ".json"`` with shape, axis order, world placement (``length_unit``:
+    ``m`` where ``unit``, the capture's metres per world unit, placed it in metres) and channel
+    names. Returns (raw path, header path)."""
     vol = np.ascontiguousarray(_as_numpy(density), dtype="<f4")
     names = list(names) if names is not None else channel_names(vol.shape[0])
     if len(names) != vol.shape[0]:
@@ -343,6 +348,8 @@ def write_raw(
         "origin_is": "world xyz of the centre of voxel (0, 0, 0); voxel (k, j, i) is centred at "
         "origin + (i, j, k) * voxel_size",
         "views": list(views),
+        "length_unit": "world units" if unit is None else "m",
+        "metres_per_world_unit": unit,
     }
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         vol.tofile(fh)
@@ -376,22 +383,27 @@ def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
 
 def export_density(
     volume: Density, out_stem: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO,
-    names: Sequence[str] | None = None,
+    names: Sequence[str] | None = None, unit: float | None = None,
 ) -> list[Path]:
     """Write ``volume`` as ``<out_stem>.vti``, ``.nrrd``, ``.raw`` (+ ``.raw.json``), ``.vdb``,
     ``.ply`` and/or ``.obj`` (the meshes: the iso-surface at ``iso`` times the peak of the channel mean,
     see :func:`~flamerecon.outputs.mesh.iso_surface`); ``names``: the channels' (default
-    :func:`channel_names`)."""
+    :func:`channel_names`). With ``unit`` (metres per world unit) every placement (origin,
+    spacing, voxel size, vertices) is in metres, so that a 0.5 mm-unit capture arrives in Blender
+    or ParaView at its real size; the values stay density.npz's (per world unit)."""
     formats = _check_formats(formats)
     stem = Path(out_stem)
-    args = (volume.density, volume.bbox_min, volume.bbox_max)
+    scale = 1.0 if unit is None else float(unit)
+    args = (volume.density, np.asarray(volume.bbox_min, np.float64) * scale,
+            np.asarray(volume.bbox_max, np.float64) * scale)
     written: list[Path] = []
     if "vti" in formats:
         written.append(write_vti(stem.with_name(stem.name + ".vti"), *args, names))
     if "nrrd" in formats:
-        written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args, names))
+        written.append(write_nrrd(stem.with_name(stem.name + ".nrrd"), *args, names,
+                                  units=None if unit is None else "m"))
     if "raw" in formats:
-        written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, names, views=volume.views))
+        written.extend(write_raw(stem.with_name(stem.name + ".raw"), *args, names, views=volume.views, unit=unit))
     if "vdb" in formats:
         written.append(write_vdb(stem.with_name(stem.name + ".vdb"), volume.density,
                                  sample_origin(*args[1:], volume.density.shape),
@@ -401,7 +413,8 @@ def export_density(
     if meshes:
         vertices, faces = iso_surface(*args, iso=iso)
         comment = (f"flamerecon iso-surface at {iso:g} x the peak of the density's channel mean; "
-                   "world units; box {} to {}".format(*(list(map(float, b)) for b in args[1:])))
+                   + ("world units" if unit is None else "metres")
+                   + "; box {} to {}".format(*(list(map(float, b)) for b in args[1:])))
         written += [write(stem.with_name(f"{stem.name}.{fmt}"), vertices, faces, comment) for fmt, write in meshes]
     return written
 
@@ -409,14 +422,30 @@ def export_density(
 def export_run(run_dir: str | os.PathLike, formats: Iterable[str] = FORMATS, iso: float = DEFAULT_ISO) -> list[Path]:
     """Export ``RUN_DIR/density.npz`` into the run folder as ``density.<format>``, and its
     confidence volume ``uncertainty.npz``, when the run has one, as ``uncertainty.<format>``
-    for the volume formats (vti, nrrd, raw, vdb)."""
+    for the volume formats (vti, nrrd, raw, vdb); placed in metres where the run's scene knew
+    its unit (:func:`recorded_conventions`)."""
     run_dir = Path(run_dir)
-    written = export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso)
+    unit = recorded_conventions(run_dir)["unit"]
+    written = export_density(load_density(run_dir / DENSITY_FILE), run_dir / "density", formats, iso, unit=unit)
     volumes = [f for f in _check_formats(formats) if f in VOLUME_FORMATS]
     if volumes and (run_dir / UNCERTAINTY_FILE).is_file():
         sigma = load_density(run_dir / UNCERTAINTY_FILE)
-        written += export_density(sigma, run_dir / "uncertainty", volumes, iso, sigma_names(sigma.density.shape[0]))
+        written += export_density(sigma, run_dir / "uncertainty", volumes, iso, sigma_names(sigma.density.shape[0]),
+                                  unit=unit)
     return written
+
+
+def recorded_conventions(run_dir: str | os.PathLike) -> dict:
+    """A run's scene conventions as its metrics.json recorded them (``scene``): ``up`` (an axis
+    such as ``+z``), ``unit`` (metres per world unit or None) and ``frame_rate`` (or None); for
+    a run that recorded none (written before they were, or no metrics.json), +y and unknown."""
+    import json
+
+    try:
+        record = json.loads((Path(run_dir) / "metrics.json").read_text()).get("scene") or {}
+    except (OSError, ValueError, AttributeError):
+        record = {}
+    return {"up": record.get("up") or "+y", "unit": record.get("unit"), "frame_rate": record.get("frame_rate")}
 
 
 def check_exporters(formats: Iterable[str]) -> None:

@@ -19,6 +19,8 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import value, wrong_type, wrong_value
+from flamerecon.geometry.axes import UP_AXES, axis_index, axis_name, axis_sign, ground_directions, turn_from_y
+from flamerecon.geometry.units import display_length
 from flamerecon.outputs.atomic import atomic_path, atomic_write_bytes, write_errno
 from flamerecon.outputs.export import voxel_size
 from flamerecon.rules import number
@@ -140,43 +142,86 @@ def to_rgb8(image, vmax: float | None = None, colormap: int = cv2.COLORMAP_INFER
 
 
 def project_along(density, bbox_min, bbox_max, axis: str = "y") -> np.ndarray:
-    """Orthographic line integral of the density along world ``axis`` (world units), the
-    emission seen from far along that axis: (C, nz, ny, nx) -> (C, rows, cols).
+    """Orthographic line integral of the density along world ``axis`` (``x``, ``y``, ``z``, or
+    a signed name such as ``-z``: the same integral), the emission seen from far along that
+    axis (world units): (C, nz, ny, nx) -> (C, rows, cols).
 
     Remaining axes in array order: along y -> (C, nz, nx), along z -> (C, ny, nx),
     along x -> (C, nz, ny); rows grow downwards in the image.
     """
     vol = _numpy(density)
-    if axis not in _AXES:
-        raise ValueError(f"project_along: axis must be one of x, y, z, got {axis!r}")
-    step = voxel_size(bbox_min, bbox_max, vol.shape)["xyz".index(axis)]
-    return vol.sum(axis=1 + _AXES[axis]) * np.float32(step)
+    name = axis_name(axis)
+    if name is None:
+        raise ValueError(f"project_along: axis must be one of x, y, z (or {', '.join(UP_AXES)}), got {axis!r}")
+    step = voxel_size(bbox_min, bbox_max, vol.shape)[axis_index(name)]
+    return vol.sum(axis=1 + _AXES[name[-1]]) * np.float32(step)
 
 
-def top_view(density, bbox_min, bbox_max, up: str = "y", vmax: float | None = None) -> np.ndarray:
-    """The paper's Fig. 5: the density seen from above (along the ``up`` axis) as (H, W, 3)
-    uint8; log it every N iterations to watch the solve sharpen."""
-    return to_rgb8(project_along(density, bbox_min, bbox_max, up), vmax)
+def _up(up: str) -> str:
+    name = axis_name(up)
+    if name is None:
+        raise ValueError(f"up: must be one of {', '.join(UP_AXES)}, got {up!r}")
+    return name
 
 
-def top_view_figure(path: str | os.PathLike, density, bbox_min, bbox_max, up: str = "y", title: str = "") -> Path:
+def _array_axes(fixed: int) -> tuple[int, int]:
+    """The world axes (indices) of a volume's array dimensions left when world axis ``fixed`` is
+    summed or cut, in array order (z, y, x)."""
+    return tuple(a for a in (2, 1, 0) if a != fixed)
+
+
+def oriented(plane: np.ndarray, axes: tuple[int, int], rows: tuple[int, float], cols: tuple[int, float]) -> np.ndarray:
+    """A (..., A, B) array whose last two dimensions run along world axes ``axes`` (array order),
+    arranged so that its rows run along the signed world direction ``rows`` and its columns
+    along ``cols`` ((axis index, +-1.0) each, :func:`~flamerecon.geometry.axes.ground_directions`)."""
+    out = plane if tuple(axes) == (rows[0], cols[0]) else np.swapaxes(plane, -1, -2)
+    if rows[1] < 0:
+        out = np.flip(out, -2)
+    if cols[1] < 0:
+        out = np.flip(out, -1)
+    return np.ascontiguousarray(out)
+
+
+def _span(lo: np.ndarray, hi: np.ndarray, direction: tuple[int, float]) -> tuple[float, float]:
+    """The world coordinates a figure's axis runs through along the signed ``direction``."""
+    a, sign = direction
+    return (lo[a], hi[a]) if sign > 0 else (hi[a], lo[a])
+
+
+def top_view(density, bbox_min, bbox_max, up: str = "+y", vmax: float | None = None) -> np.ndarray:
+    """The paper's Fig. 5: the density seen from above (along the ``up`` axis, e.g. ``+z``) as
+    (H, W, 3) uint8, oriented by :func:`~flamerecon.geometry.axes.ground_directions` (a scene
+    turned to another up shows the same picture); log it every N iterations to watch the solve
+    sharpen."""
+    up = _up(up)
+    across, depth = ground_directions(up)
+    seen = project_along(density, bbox_min, bbox_max, up)
+    return to_rgb8(oriented(seen, _array_axes(axis_index(up)), depth, across), vmax)
+
+
+def top_view_figure(path: str | os.PathLike, density, bbox_min, bbox_max, up: str = "+y", title: str = "",
+                    unit: float | None = None) -> Path:
     """PNG of the paper's Fig. 5 read alone: the density seen from above (its line integral along
     the ``up`` axis, channels summed: what a camera far above would record, in image units) on
-    world-unit axes, with its colour bar and a title."""
+    axes in the scene's length ``unit`` (metres per world unit; None: world units), with its
+    colour bar and a title."""
     try:
         from matplotlib.figure import Figure
     except ImportError as err:
         raise ImportError(f"top_view.png needs matplotlib; {_INSTALL_HINT}") from err
-    seen = project_along(density, bbox_min, bbox_max, up).sum(axis=0)  # rows, cols in array order
-    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
-    rows_axis, cols_axis = ("xyz".index(n) for n in sorted((n for n in "xyz" if n != up), key=lambda n: _AXES[n]))
+    up = _up(up)
+    across, depth = ground_directions(up)
+    seen = oriented(project_along(density, bbox_min, bbox_max, up).sum(axis=0), _array_axes(axis_index(up)),
+                    depth, across)
+    factor, length = display_length(unit, float(np.max(np.subtract(bbox_max, bbox_min))))
+    lo, hi = np.asarray(bbox_min, float) * factor, np.asarray(bbox_max, float) * factor
     fig = Figure(figsize=(5.2, 4.4), dpi=100, layout="constrained")
     ax = fig.subplots()
-    shown = ax.imshow(seen, origin="lower", extent=(lo[cols_axis], hi[cols_axis], lo[rows_axis], hi[rows_axis]),
+    shown = ax.imshow(seen, origin="lower", extent=(*_span(lo, hi, across), *_span(lo, hi, depth)),
                       cmap="inferno", vmin=0.0, interpolation="nearest")
-    ax.set_xlabel(f"{'xyz'[cols_axis]} (world units)")
-    ax.set_ylabel(f"{'xyz'[rows_axis]} (world units)")
-    fig.colorbar(shown, ax=ax, label=f"emission integrated along {up} (image units)")
+    ax.set_xlabel(f"{'xyz'[across[0]]} ({length})")
+    ax.set_ylabel(f"{'xyz'[depth[0]]} ({length})")
+    fig.colorbar(shown, ax=ax, label=f"emission integrated along {up[-1]} (image units)")
     ax.set_title(f"{title + chr(10) if title else ''}density seen from above, along {up} (the paper's Fig. 5)",
                  fontsize="medium")
     path = Path(path)
@@ -198,23 +243,47 @@ def centroid_index(density) -> tuple[int, int, int]:
     return round(i), round(j), round(k)
 
 
-def slice_panels(scalar: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: Sequence[int], up: str = "y"
-                 ) -> list[tuple[np.ndarray, int, int, str]]:
+def brightest_index(density) -> tuple[int, int, int]:
+    """The voxel (i, j, k) at the middle of the brightest region of the density (channels
+    summed, averaged over cubes of about a sixteenth of the grid's longest side, at least 3
+    voxels): where slices cut through smoke even when the centre of mass falls between two
+    lobes. The grid's centre for an empty volume."""
+    total = torch.from_numpy(np.ascontiguousarray(_numpy(density).sum(axis=0)))
+    if float(total.max()) <= 0:
+        nz, ny, nx = total.shape
+        return nx // 2, ny // 2, nz // 2
+    width = max(3, round(max(total.shape) / 16)) | 1  # odd: centred
+    box = torch.ones(1, 1, width, width, width, dtype=total.dtype)
+    sums = torch.nn.functional.conv3d(total[None, None], box, padding=width // 2)[0, 0]
+    counts = torch.nn.functional.conv3d(torch.ones_like(total)[None, None], box, padding=width // 2)[0, 0]
+    smooth = sums / counts  # the mean over the cube's voxels inside the grid
+    k, j, i = np.unravel_index(int(smooth.argmax()), tuple(total.shape))
+    return int(i), int(j), int(k)
+
+
+def slice_panels(scalar: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: Sequence[int], up: str = "+y"
+                 ) -> list[tuple[np.ndarray, tuple[int, float], tuple[int, float], str]]:
     """The three planes of a (nz, ny, nx) ``scalar`` through voxel ``index`` = (i, j, k), as
-    (image rows x cols, horizontal world axis, vertical world axis, title): the two vertical
-    planes with ``up`` upward, then the horizontal one seen from above."""
-    u = "xyz".index(up)
-    a, b = (w for w in range(3) if w != u)
+    (image rows x cols with row 0 at the bottom, horizontal direction, vertical direction,
+    title), the directions signed world axes (axis index, +-1.0): the two vertical planes with
+    ``up`` upward, then the horizontal one seen from above, oriented as
+    :func:`~flamerecon.geometry.axes.ground_directions` says."""
+    up = _up(up)
+    rise = (axis_index(up), axis_sign(up))
+    across, depth = ground_directions(up)
     centre = lo + (np.asarray(index) + 0.5) * voxel_size(lo, hi, scalar.shape)
 
-    def plane(h: int, v: int, fixed: int) -> np.ndarray:
+    def plane(h: tuple[int, float], v: tuple[int, float]) -> tuple[np.ndarray, str]:
+        fixed = 3 - h[0] - v[0]
         cut = np.take(scalar, int(index[fixed]), axis=_AXES["xyz"[fixed]])
-        rows_first = _AXES["xyz"[v]] < _AXES["xyz"[h]]  # the array axes left keep their order
-        return cut if rows_first else cut.T
+        name = f"{'xyz'[h[0]]}{'xyz'[v[0]]} plane at {'xyz'[fixed]} = {centre[fixed]:.3g}"
+        return oriented(cut, _array_axes(fixed), v, h), name
 
-    n = "xyz"
-    return [(plane(h, v, f), h, v, f"{n[h]}{n[v]} plane at {n[f]} = {centre[f]:.3g}")
-            for h, v, f in ((a, u, b), (b, u, a), (a, b, u))]
+    out = []
+    for h, v in ((across, rise), (depth, rise), (across, depth)):
+        picture, name = plane(h, v)
+        out.append((picture, h, v, name))
+    return out
 
 
 def slices_figure(
@@ -225,12 +294,14 @@ def slices_figure(
     index: Sequence[int] | None = None,
     channel: int | None = None,
     title: str = "",
-    up: str = "y",
+    up: str = "+y",
+    unit: float | None = None,
 ) -> Path:
-    """PNG of three planes through voxel ``index`` = (i, j, k) (default: the density's centre
-    of mass, :func:`centroid_index`), the two vertical ones with world axis ``up`` upward
-    (:func:`slice_panels`), world-unit axes, one shared colour bar. ``channel`` picks one
-    colour channel; default: their sum (total emission)."""
+    """PNG of three planes through voxel ``index`` = (i, j, k) (default: the middle of the
+    brightest region, :func:`brightest_index`), the two vertical ones with world axis ``up``
+    upward (:func:`slice_panels`), axes in the scene's length ``unit`` (metres per world unit;
+    None: world units), one shared colour bar. ``channel`` picks one colour channel; default:
+    their sum (total emission)."""
     try:
         from matplotlib.figure import Figure
     except ImportError as err:
@@ -238,24 +309,26 @@ def slices_figure(
     vol = _numpy(density)
     scalar = vol.sum(axis=0) if channel is None else vol[channel]
     nz, ny, nx = scalar.shape
-    i, j, k = centroid_index(scalar[None]) if index is None else (int(v) for v in index)
+    i, j, k = brightest_index(scalar[None]) if index is None else (int(v) for v in index)
     if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
         raise ValueError(f"slices_figure: index {(i, j, k)} outside the grid (nx, ny, nz) = "
                          f"{(nx, ny, nz)}")
-    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    factor, length = display_length(unit, float(np.max(np.subtract(bbox_max, bbox_min))))
+    lo, hi = np.asarray(bbox_min, float) * factor, np.asarray(bbox_max, float) * factor
     panels = slice_panels(scalar, lo, hi, (i, j, k), up)
     vmax = max(float(p[0].max()) for p in panels) or 1.0
     fig = Figure(figsize=(13, 4.2), dpi=100, layout="constrained")
     axes = fig.subplots(1, 3)
     for ax, (plane, h, v, label) in zip(axes, panels):
-        shown = ax.imshow(plane, origin="lower", extent=(lo[h], hi[h], lo[v], hi[v]),
+        shown = ax.imshow(plane, origin="lower", extent=(*_span(lo, hi, h), *_span(lo, hi, v)),
                           cmap="inferno", vmin=0.0, vmax=vmax, interpolation="nearest")
-        ax.set_xlabel(f"{'xyz'[h]} (world units)")
-        ax.set_ylabel(f"{'xyz'[v]} (world units)")
+        ax.set_xlabel(f"{'xyz'[h[0]]} ({length})")
+        ax.set_ylabel(f"{'xyz'[v[0]]} ({length})")
         ax.set_title(label)
     fig.colorbar(shown, ax=list(axes), shrink=0.9,
-                 label=("density" if channel is None else f"density, channel {channel}") + " (image units per world unit)")
-    where = "its centre of mass, voxel" if index is None else "voxel"
+                 label=("density" if channel is None else f"density, channel {channel}")
+                 + " (image units per world unit)")
+    where = "the middle of its brightest region, voxel" if index is None else "voxel"
     fig.suptitle(f"{title + ': ' if title else ''}density through {where} {(i, j, k)}")
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -387,8 +460,10 @@ def orbit_cameras(
 ):
     """Cameras on a circle around ``target`` looking at it (kornia batch, one per azimuth).
 
-    Azimuth turns about the ``up`` direction, 0 on the side of the world axis most
-    perpendicular to ``up`` (+z for up = +y) and 90 towards the next one (+x for up = +y);
+    Azimuth turns about the ``up`` direction, 0 on the side of :func:`azimuth_zero` (+z for up
+    = +y; for up along an axis, +y's +z turned as :func:`~flamerecon.geometry.axes.turn_from_y`
+    turns +y onto it, so a turned scene's orbits are the same) and 90 a right angle on about up
+    (+x for up = +y);
     elevation lifts the camera towards ``up``; distance in world units; ``fov_deg`` the
     vertical field of view. Pixel centres at +0.5 (flamerecon's convention).
     """
@@ -403,7 +478,7 @@ def orbit_cameras(
         raise wrong_value("orbit_cameras.up", up, "a non-zero direction")
     up_dir = np.asarray(up, dtype=np.float64)
     up_dir = up_dir / np.linalg.norm(up_dir)
-    first = np.eye(3)[_least_aligned(up_dir)]
+    first = azimuth_zero(up_dir)
     first = first - (first @ up_dir) * up_dir
     first /= np.linalg.norm(first)
     second = np.cross(up_dir, first)  # +x for up = +y, first = +z
@@ -454,9 +529,14 @@ def support_box(density, bbox_min, bbox_max, threshold: float = 0.01) -> tuple[n
     return lo + first * size, lo + last * size
 
 
-def _least_aligned(direction: np.ndarray) -> int:
-    """World axis most perpendicular to ``direction``; ties go to z, then x, then y."""
-    return min((2, 0, 1), key=lambda a: abs(direction[a]))
+def azimuth_zero(up: np.ndarray) -> np.ndarray:
+    """The world direction (3,) of an orbit's azimuth 0 about the unit vector ``up``: for up
+    within a degree of a world axis, +z turned by :func:`~flamerecon.geometry.axes.turn_from_y`;
+    else the world axis most perpendicular to ``up`` (ties to z, then x, then y)."""
+    index = int(np.abs(up).argmax())
+    if abs(up[index]) > math.cos(math.radians(1.0)):
+        return turn_from_y(("+" if up[index] > 0 else "-") + "xyz"[index]).numpy()[:, 2].copy()
+    return np.eye(3)[min((2, 0, 1), key=lambda a: abs(up[a]))]
 
 
 # ---------------------------------------------------------------------------------------------

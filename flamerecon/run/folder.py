@@ -48,11 +48,13 @@ from flamerecon.run.tensorboard import RunWriter
 from flamerecon.scenes import Scene, load_scene
 
 CONFIG_FILE = Path(".hydra") / "config.yaml"
-RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "overwrite", "log", "checkpoint", "export", "hydra")
+RUN_LAYER_KEYS = ("scene", "temporal", "debug", "resume", "overwrite", "log", "checkpoint", "export", "hydra",
+                  "leave_one_out")
 #: what a run writes into its folder (besides TensorBoard's ``events.out.tfevents.*`` and the
 #: atomic writers' stale temporaries): what ``overwrite=true`` removes before a new run there
 RUN_ENTRIES = frozenset({
     ".hydra", "train.log", "density.npz", "cameras.json", "metrics.json", "renders", "checkpoint.pt", "FAILED",
+    "leave_one_out",
     "frames", "multirun.yaml", "density.raw.json", *(f"density.{fmt}" for fmt in FORMATS)})
 #: the folders and the log a run writes into (through a symbolic link it would write elsewhere)
 RUN_SUBFOLDERS = (".hydra", "renders", "frames", "train.log")
@@ -103,6 +105,8 @@ def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int]
     metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
     H, W = scene.image_size
     metrics["resolution"] = {"working": [W, H]}
+    metrics["scene"] = {"up": scene.up, "up_source": scene.up_source, "unit": scene.unit,
+                        "frame_rate": scene.frame_rate}
     if native_scene is not None:
         found = native_scores(native_scene, volume, grid, [scene.views[v] for v in holdout], step)
         if found is not None:
@@ -203,7 +207,7 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
     writer.scalars(rec.fit.result.iterations, {f"heldout_{k}": mean_of(metrics["heldout"], k) for k in (
         "detail", "detail_silhouette") if k in next(iter(metrics["heldout"].values()), {})}, "eval")
     writer.image("images/hull_top_view", top_view(setup.hull[None].float(), setup.grid.bbox_min,
-                                                  setup.grid.bbox_max), 0, "HWC")
+                                                  setup.grid.bbox_max, scene.up), 0, "HWC")
     solver = options.solver
     writer.hparams(
         {"scene": scene_options["name"], "solver": solver.name, "l1": rec.fit.l1,

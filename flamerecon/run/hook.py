@@ -95,11 +95,12 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
     view of vol (C, nz, ny, nx), at step ``it``, under the tag prefix ``root``."""
     s = setup
     values = [view_psnr(img, s.scene, v) for img, v in zip(imgs, s.holdout)]
-    writer.scalars(it, {"heldout_psnr": sum(values) / len(values)}, prefix=f"{root}eval")
+    if values:  # none with every camera fitted
+        writer.scalars(it, {"heldout_psnr": sum(values) / len(values)}, prefix=f"{root}eval")
     for img, v in zip(imgs, s.holdout):
         writer.image(f"{root}heldout/{s.scene.views[v]}", heldout_figure(img, s.scene.images[v], s.scene.views[v]),
                      it, "HWC")
-    writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max), it, "HWC")
+    writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max, s.scene.up), it, "HWC")
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import calibrated_scene, fit, warm_start
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.progress import Progress
-from flamerecon.run.pipeline import options_from_config
+from flamerecon.run.config import options_from_config
 from flamerecon.scenes import Scene, SceneError, load_scene
 
 #: the per-view numbers averaged into the table's last row.

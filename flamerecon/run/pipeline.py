@@ -138,10 +138,29 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         clock = time.perf_counter()
         export_run(run_dir, list(formats), float(cfg.export.get("iso", DEFAULT_ISO)))
         timing["export"] = time.perf_counter() - clock
+    if cfg.get("leave_one_out"):
+        clock = time.perf_counter()
+        metrics["leave_one_out"] = cross_check(cfg, run_dir, rec)
+        timing["leave_one_out"] = time.perf_counter() - clock
     metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
     metrics["memory"] = peak_memory(device)
     write_json_atomic(run_dir / "metrics.json", metrics)
     return logged(metrics)
+
+
+def cross_check(cfg: DictConfig, run_dir: Path, rec) -> dict:
+    """``leave_one_out=true``: each camera the run fitted left out in turn, the others fitted as
+    the run was (the held-out views, if any, stay out of every fold), scored
+    (:func:`~flamerecon.run.leave_one_out.leave_one_out`, into ``run_dir/leave_one_out/``);
+    returns its ``mean``, per-view scores and protocol for metrics.json."""
+    from flamerecon.run.leave_one_out import leave_one_out
+
+    scene = rec.scene
+    record = leave_one_out(cfg, run_dir / "leave_one_out", [scene.views[v] for v in rec.setup.train],
+                           [scene.views[v] for v in rec.setup.holdout], scene=load_scene(cfg.scene))
+    keep = ("psnr", "ssim", "detail", "psnr_black")
+    return {"mean": {k: record["mean"][k] for k in keep}, "protocol": record["protocol"],
+            "views": {name: {k: row[k] for k in keep} for name, row in record["views"].items()}}
 
 
 def logged(metrics: dict) -> dict:

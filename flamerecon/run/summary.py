@@ -3,19 +3,27 @@ TensorBoard's hparams and multirun sweeps read."""
 
 from __future__ import annotations
 
+import math
+
 from flamerecon.fit.reconstruct import mean_of
 
 
 def summary_table(metrics: dict) -> str:
     """The short table printed at the end of a run."""
     s = metrics["solver"]
+    held = list(metrics["heldout"].values())
     rows = [
         ("held-out PSNR [dB]", psnr_text(metrics["heldout"], "psnr", "psnr_black")),
         ("held-out SSIM", f"{mean_of(metrics['heldout'], 'ssim'):.4f}"),
-        ("  appearance-aligned [dB]", psnr_text(metrics["heldout"], "psnr_aligned", None,
-                                                "gain fitted on the left half, PSNR of the right half")),
-    ]
-    held = list(metrics["heldout"].values())
+    ] if held else [("held-out views", f"none: all {len(metrics['train'])} cameras fitted, so no camera measured "
+                                       + ("this result; the leave-one-view-out below scores each left out in turn"
+                                          if metrics.get("leave_one_out") else
+                                          "this result; leave_one_out=true (or scripts/leave_one_out.py with the "
+                                          "same overrides) scores each camera left out in turn"))]
+    aligned = {name: v for name, v in metrics["heldout"].items() if math.isfinite(v.get("psnr_aligned", math.nan))}
+    if aligned:  # undefined where a half of the view is dark: printed only where it means something
+        rows.append(("  appearance-aligned [dB]", psnr_text(aligned, "psnr_aligned", None,
+                                                            "gain fitted on the left half, PSNR of the right half")))
     if held and "psnr_predicted" in held[0]:
         u = metrics.get("uncertainty", {})
         note = (f"by the confidence: {len(u.get('members', []))} members + shifts of "
@@ -35,6 +43,12 @@ def summary_table(metrics: dict) -> str:
             (f"  native {W}x{H} PSNR [dB]", psnr_text(metrics["heldout"], "psnr_native", "psnr_black_native")),
             (f"  native {W}x{H} SSIM", f"{mean_of(metrics['heldout'], 'ssim_native'):.4f}"),
         ]
+    loo = metrics.get("leave_one_out")
+    if loo:
+        m = loo["mean"]
+        rows.append(("leave-one-view-out [dB]", f"{m['psnr']:.2f}  (black image: {m['psnr_black']:.2f}; detail "
+                     f"{m['detail']:.3f}; {loo['protocol']}; "
+                     + ", ".join(f"{name} {r['psnr']:.2f}" for name, r in loo["views"].items()) + ")"))
     rows.append(("training PSNR [dB]", f"{mean_of(metrics['train'], 'psnr'):.2f}"
                  + (f"  (detail {mean_of(metrics['train'], 'detail'):.3f})" if "detail" in (
                      next(iter(metrics["train"].values()), {})) else "")))
@@ -53,6 +67,8 @@ def summary_table(metrics: dict) -> str:
                                 f"({r['principal_point_px'][0]:+.2f}, {r['principal_point_px'][1]:+.2f}) px, "
                                 f"box moves {r['box_px']:.2f} px"))
                  for name, r in c["cameras"].items()]
+    if "scene" in metrics:
+        rows.append(("scene axes", scene_axes(metrics["scene"])))
     if "volume" in metrics:
         rows.append(("volume rel. L2 / IoU", f"{metrics['volume']['rel_l2']:.4f} / {metrics['volume']['iou']:.4f}"))
     rows += [
@@ -95,6 +111,14 @@ def warnings_block(warnings: list[dict]) -> list[str]:
         return []
     return [f"  WARNINGS ({len(warnings)}): the scores above may mean little"] + [
         f"  ! {w['code']}: {w['message']}" for w in warnings]
+
+
+def scene_axes(record: dict) -> str:
+    """metrics.json's ``scene`` record as the summary says it: up axis (and why), unit, frame rate."""
+    unit = "world units of unknown length (scene.unit sets metres per unit)" if record["unit"] is None else (
+        f"1 world unit = {record['unit']:g} m")
+    rate = "frame rate unknown" if record["frame_rate"] is None else f"{record['frame_rate']:g} frames/s"
+    return f"up {record['up']} ({record['up_source']}); {unit}; {rate}"
 
 
 def calibration_source(record: dict) -> str:

@@ -9,7 +9,9 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import fields, one_or_many, tensor
 from flamerecon.errors import FlameReconError
+from flamerecon.geometry.axes import UP_AXES, axis_name
 from flamerecon.geometry.grid import VoxelGrid, checked_box
+from flamerecon.geometry.units import length_name
 from flamerecon.geometry.photometry import delinearize
 
 
@@ -32,6 +34,11 @@ class Scene:
     - ``response``: {"gamma", "black_level"} when ``images`` were linearized from
       ``recorded_images`` (B, C, H, W), the values as the cameras recorded them; scores are
       taken in those units (:meth:`to_recorded`, :meth:`recorded_view`);
+    - ``up``: the world axis the flame rises along, one of ``"+x"`` ... ``"-z"``
+      (:mod:`flamerecon.geometry.axes`); ``up_source`` says where it came from (the config, the
+      calibration file, the cameras' image-up directions, or the scene's own convention);
+    - ``unit``: metres per world unit (None: unknown; lengths are then in world units);
+    - ``frame_rate``: frames per second of the capture (None: unknown);
     - ``meta``: loader extras.
     """
 
@@ -49,10 +56,24 @@ class Scene:
     meta: dict = field(default_factory=dict)
     response: dict | None = None
     recorded_images: torch.Tensor | None = None
+    up: str = "+y"
+    up_source: str = "the default"
+    unit: float | None = None
+    frame_rate: float | None = None
 
     def __post_init__(self) -> None:
         self.views, self.default_holdout = one_or_many(self.views), one_or_many(self.default_holdout)
         self.bbox_min, self.bbox_max = checked_box(self.bbox_min, self.bbox_max, "Scene")
+        where = self.source or "Scene"
+        if axis_name(self.up) is None:
+            raise SceneError(f"{where}: up: {self.up!r} is not an axis; give one of {', '.join(UP_AXES)}")
+        self.up = axis_name(self.up)
+        for key in ("unit", "frame_rate"):
+            number = getattr(self, key)
+            if number is not None and not (isinstance(number, (int, float)) and not isinstance(number, bool)
+                                           and 0 < float(number) < float("inf")):
+                raise SceneError(f"{where}: {key}: {number!r} is not a positive number (or None: unknown)")
+            setattr(self, key, None if number is None else float(number))
         fields(self)
         for name in self.views:
             if not isinstance(name, str) or not name or any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
@@ -77,6 +98,11 @@ class Scene:
         """View ``v`` (C, H, W) as its camera recorded it."""
         return self.images[v] if self.recorded_images is None else self.recorded_images[v]
 
+    def length_unit(self) -> str:
+        """The name of a length on this scene's world axes: ``"m"`` when one world unit is a
+        metre, ``"mm"`` for a millimetre, else ``"world units"`` (or ``"x <unit> m"``)."""
+        return length_name(self.unit)
+
     @property
     def num_views(self) -> int:
         return len(self.views)
@@ -86,11 +112,11 @@ class Scene:
         """(H, W)."""
         return int(self.images.shape[-2]), int(self.images.shape[-1])
 
-    def split(self, holdout, scored: bool = True) -> tuple[list[int], list[int]]:
+    def split(self, holdout) -> tuple[list[int], list[int]]:
         """Resolve ``holdout`` (view names or indices; None for the scene's default) into
-        (train indices, held-out indices); ``scored=False`` allows none held out (a density
-        fitted to every view, e.g. inside a camera fit)."""
-        given = holdout is not None
+        (train indices, held-out indices). None held out (``[]``, or None where the scene names
+        no default) fits every camera: nothing then scores the result on a view it did not see
+        (leave-one-view-out does)."""
         if holdout is None:
             holdout = list(self.default_holdout)
         if isinstance(holdout, (str, int)):
@@ -114,12 +140,6 @@ class Scene:
         train = [i for i in range(self.num_views) if i not in held]
         if not train:
             raise SceneError(f"holdout: {list(holdout)} holds out every view of scene '{self.name}'; keep at least one for training")
-        if not held and scored:
-            why = "holdout=[]" if given else f"holdout=null and scene '{self.name}' names none by default"
-            raise SceneError(
-                f"holdout: no view is held out ({why}), so nothing would score the reconstruction; "
-                f"hold one out, e.g. holdout=[{self.views[-1]}] (views: {self.views})"
-            )
         self.check_no_leak(train, held)
         return train, held
 
@@ -142,3 +162,4 @@ class Scene:
         """A cheap fingerprint of view ``v``'s image (equal images give equal keys)."""
         img = self.images[v]
         return (tuple(img.shape), float(img.double().sum()), float((img.double() ** 2).sum()))
+

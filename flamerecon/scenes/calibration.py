@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from flamerecon.errors import ConfigError
+from flamerecon.geometry.axes import UP_AXES, axis_name, up_from_cameras
 from flamerecon.geometry.cameras import make_cameras
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import estimate_bbox, silhouettes
@@ -22,10 +23,15 @@ from flamerecon.plain import json_value
 from flamerecon.resources import checkout_root
 from flamerecon.scenes.base import Scene, SceneError
 from flamerecon.scenes.frames import is_link_loop
-from flamerecon.scenes.values import read_array, read_float, read_int, read_matrix
+from flamerecon.scenes.values import POSITIVE, read_array, read_float, read_int, read_matrix
+
+#: a capture's conventions: its up axis, metres per world unit and frames per second, each read
+#: from the ``scene`` config, else the calibration file's top level (:func:`conventions`)
+CONVENTION_KEYS = ("up", "unit", "frame_rate")
 
 #: the ``scene`` options every capture loader reads (each adds its own).
-CAPTURE_KEYS = ("root", "frame", "downscale", "channels", "gamma", "black_level", "bbox", "silhouette")
+CAPTURE_KEYS = ("root", "frame", "downscale", "channels", "gamma", "black_level", "bbox", "silhouette",
+                *CONVENTION_KEYS)
 
 
 def option(cfg, key: str, default=None):
@@ -283,12 +289,55 @@ def undistort(image: np.ndarray, K_opencv: np.ndarray, dist: np.ndarray) -> np.n
     return out[:, :, None] if out.ndim == 2 else out
 
 
+def file_conventions(top: dict, file) -> dict:
+    """The calibration file's top-level ``up`` (an axis name such as ``+z``), ``unit`` (metres
+    per world unit) and ``frame_rate`` (frames per second), checked; absent ones left out."""
+    found = {}
+    if top.get("up") is not None:
+        up = axis_name(top["up"])
+        if up is None:
+            raise SceneError(f"{file}: up: {top['up']!r} is not an axis; give one of {', '.join(UP_AXES)}")
+        found["up"] = up
+    for key in ("unit", "frame_rate"):
+        if top.get(key) is not None:
+            found[key] = read_float(top[key], file, key, POSITIVE)
+    return found
+
+
+def conventions(cfg, cams, given: dict, file) -> dict:
+    """The Scene's ``up``, ``up_source``, ``unit`` and ``frame_rate``: each from the config
+    (``scene.up`` other than ``auto``, ``scene.unit``, ``scene.frame_rate``), else from ``given``
+    (the calibration file's, :func:`file_conventions`), else the up axis the cameras show
+    upwards (:func:`~flamerecon.geometry.axes.up_from_cameras`; +y where they disagree) and an
+    unknown unit and frame rate."""
+    out = {"unit": given.get("unit"), "frame_rate": given.get("frame_rate")}
+    for key in ("unit", "frame_rate"):
+        if option(cfg, key) is not None:
+            out[key] = read_float(option(cfg, key), "config", f"scene.{key}", POSITIVE)
+    configured = option(cfg, "up", "auto")
+    if configured != "auto":
+        up = axis_name(configured)
+        if up is None:
+            raise SceneError(f"config: scene.up: {configured!r} is not an axis; give auto or one of "
+                             f"{', '.join(UP_AXES)}")
+        return {**out, "up": up, "up_source": "config scene.up"}
+    if "up" in given:
+        return {**out, "up": given["up"], "up_source": f"{file}: up"}
+    up, angle = up_from_cameras(cams.extrinsics)
+    if up is None:
+        return {**out, "up": "+y", "up_source": f"the default: the cameras' image-up directions do not agree "
+                                                f"on an axis ({angle:.0f} deg off the nearest); set scene.up"}
+    return {**out, "up": up, "up_source": f"auto: the cameras' image-up direction, {angle:.0f} deg off {up} "
+                                          "(scene.up or the calibration file's up if the flame rises otherwise)"}
+
+
 def make_scene(
     cfg, path, default_name: str, names: list[str], images: list[np.ndarray], Ks, w2cs,
-    sources: list, file_box, holdout: list[str], frame: int, **meta,
+    sources: list, file_box, holdout: list[str], frame: int, file_values: dict | None = None, **meta,
 ) -> Scene:
     """The Scene every loader returns: views stacked and checked, the box chosen (config,
-    file, or silhouettes), ``holdout`` checked against the view names."""
+    file, or silhouettes), ``holdout`` checked against the view names, the conventions
+    (:func:`conventions`) from the config, else ``file_values`` (the file's), else the cameras."""
     cams, batch, recorded = build_views(cfg, names, images, Ks, w2cs, sources)
     lo, hi, box_source = choose_box(cfg, file_box, cams, batch, path)
     unknown = [h for h in holdout if h not in names]
@@ -302,5 +351,5 @@ def make_scene(
         response=None if recorded is None else {
             "gamma": option(cfg, "gamma", 1.0), "black_level": read_float(option(cfg, "black_level", 0.0), "config",
                                                                           "scene.black_level")},
-        recorded_images=recorded,
+        recorded_images=recorded, **conventions(cfg, cams, file_values or {}, path),
     )

@@ -32,6 +32,7 @@ from flamerecon.scenes.calibration import (
     box_from_value,
     check_image_size,
     check_rigid,
+    file_conventions,
     make_scene,
     option,
     read_json_object,
@@ -133,4 +134,5 @@ def load_nerf(cfg) -> Scene:
                                         what=f"view name '{name}'"))
     file_box = box_from_value(data["bbox"], path, "bbox") if "bbox" in data else None
     holdout = read_names(option(cfg, "holdout", []), "config", "scene.holdout")
-    return make_scene(cfg, path, "nerf", names, images, Ks, w2cs, sources, file_box, holdout, frame)
+    return make_scene(cfg, path, "nerf", names, images, Ks, w2cs, sources, file_box, holdout, frame,
+                      file_conventions(data, path))

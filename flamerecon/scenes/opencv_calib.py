@@ -42,6 +42,7 @@ from flamerecon.scenes.calibration import (
     check_intrinsics,
     check_rotation,
     distortion,
+    file_conventions,
     make_scene,
     option,
     resolve_root,
@@ -277,4 +278,5 @@ def load_opencv(cfg) -> Scene:
     given = option(cfg, "holdout", None)
     holdout = (read_names(given, "config", "scene.holdout") if given  # else the file's
                else read_names(top.get("holdout"), path, "holdout"))
-    return make_scene(cfg, path, "opencv", names, images, Ks, w2cs, sources, file_box, holdout, frame)
+    return make_scene(cfg, path, "opencv", names, images, Ks, w2cs, sources, file_box, holdout, frame,
+                      file_conventions(top, path))

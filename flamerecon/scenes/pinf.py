@@ -27,6 +27,7 @@ from flamerecon.scenes.calibration import (
     CAPTURE_KEYS,
     check_image_size,
     check_rigid,
+    file_conventions,
     make_scene,
     option,
     read_json_object,
@@ -98,6 +99,10 @@ def load_pinf(cfg) -> Scene:
             )
         if entry.get("frame_rate") is not None:
             rates.add(read_float(entry["frame_rate"], path, f"{where}.frame_rate", POSITIVE))
+            if len(rates) > 1:
+                raise SceneError(f"{path}: {where}.frame_rate: the cameras run at {' and '.join(f'{r:g}' for r in sorted(rates))} "
+                                 "frames per second, so one frame number is not one instant in every camera; "
+                                 "resample the videos to one rate")
         image, source = read_camera_frame(folder, file_name, frame)
         check_image_size(image, H, W, source, path, f"{where}.camera_hw")
         f = 0.5 * W / math.tan(0.5 * angle)
@@ -111,5 +116,5 @@ def load_pinf(cfg) -> Scene:
     return make_scene(
         cfg, path, "scalarflow", names, images, Ks, w2cs, sources, pinf_box(info, path), holdout,
         frame, **{k: read_float(info[k], path, k) for k in ("near", "far") if k in info},
-        **({"frame_rate": rates.pop()} if len(rates) == 1 else {}),  # frames per second, when the cameras agree
+        file_values={**file_conventions(info, path), **({"frame_rate": rates.pop()} if rates else {})},
     )

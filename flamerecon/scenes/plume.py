@@ -125,6 +125,6 @@ def load(cfg) -> Scene:
         name="plume", views=views, cameras=cams, images=images, bbox_min=BOX_MIN, bbox_max=BOX_MAX,
         default_holdout=[views[-1]], truth=truth, truth_grid=truth_grid,
         source=f"synthetic plume (seed {seed}, frame {frame})",
-        meta={"frame": frame, "noise": sigma, "time": seconds, "frame_rate": 1.0 / SECONDS_PER_FRAME,
-              "velocity": {"rise": rise, "swirl": swirl}},
+        meta={"frame": frame, "noise": sigma, "time": seconds, "velocity": {"rise": rise, "swirl": swirl}},
+        up="+y", up_source="the synthetic plume's own (+y)", frame_rate=1.0 / SECONDS_PER_FRAME,
     )

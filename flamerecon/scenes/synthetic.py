@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from flamerecon.errors import MemoryBudgetError
+from flamerecon.geometry.axes import UP_AXES, axis_name, turn_box, turn_from_y, turn_volume
 from flamerecon.geometry.cameras import intrinsics_matrix, look_at, make_cameras
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.machine import MEMORY_SHARE, available_bytes, format_bytes
@@ -233,14 +234,17 @@ def check_memory(n: int, width: int, height: int, truth_grid: VoxelGrid) -> None
 
 @register_scene("synthetic", keys=("n_cameras", "width", "height", "downscale", "frame", "seed",
                                          "phantom_resolution", "phantom_step", "noise", "peak", "field",
-                                         "azimuths", "calibration_error"))
+                                         "azimuths", "calibration_error", "up", "unit"))
 def load(cfg) -> Scene:
     """Config keys: n_cameras, width, height (the native size), downscale (the working size is
     width // downscale x height // downscale), phantom_resolution, phantom_step, noise, frame,
     seed, peak (brightest pixel before noise), field (turbulent | smooth), azimuths (null:
     evenly spaced; else n_cameras angles in degrees), calibration_error (pixels of the native
     images by which every camera given to the solver, held-out ones too, is off from the one
-    that rendered its image; fixed by the seed, the same on every frame)."""
+    that rendered its image; fixed by the seed, the same on every frame), up (the axis the
+    flame rises along, ``+y`` by default: the whole scene, cameras, box and truth, turned by
+    :func:`~flamerecon.geometry.axes.turn_from_y`; the images stay the same), unit (metres per
+    world unit: null, the flame's lengths are world units, unless given)."""
     n = read_int(cfg.get("n_cameras", 8), "config", "scene.n_cameras", 2)
     W, H = (read_int(cfg.get(k, default), "config", f"scene.{k}") for k, default in (("width", 320), ("height", 240)))
     seed = read_int(cfg.get("seed", 0), "config", "scene.seed", 0)
@@ -284,12 +288,30 @@ def load(cfg) -> Scene:
     if error_px > 0:  # the images stay the true cameras' renders
         cams = miscalibrated(cams, error_px, seed)
     images, cams = downscale(images, cams, read_int(cfg.get("downscale", 1), "config", "scene.downscale"))
+    up = axis_name(cfg.get("up", "+y"))
+    if up is None:
+        raise SceneError(f"config: scene.up: got {cfg.get('up')!r}; give the axis the flame rises along, one of "
+                         f"{', '.join(UP_AXES)}")
+    Q = turn_from_y(up)
+    box = turn_box(BOX_MIN, BOX_MAX, Q)
     views = [f"cam{i:02d}" for i in range(n)]
     return Scene(
-        name="synthetic", views=views, cameras=cams, images=images,
-        bbox_min=BOX_MIN, bbox_max=BOX_MAX, default_holdout=[views[-1]],
-        truth=truth, truth_grid=truth_grid, source=f"synthetic {'' if field == 'turbulent' else field + ' '}flame (seed {seed}, frame {frame})",
+        name="synthetic", views=views, cameras=turned_cameras(cams, Q), images=images,
+        bbox_min=box[0], bbox_max=box[1], default_holdout=[views[-1]],
+        truth=turn_volume(truth, Q), truth_grid=VoxelGrid.from_box(*turn_box(BOX_MIN, BOX_MAX, Q), phantom),
+        source=f"synthetic {'' if field == 'turbulent' else field + ' '}flame (seed {seed}, frame {frame})",
         meta={"frame": frame, "noise": sigma, "time": frame * SECONDS_PER_FRAME,
               **({"field": field} if field != "turbulent" else {}),
               **({"calibration_error": error_px} if error_px > 0 else {})},
+        up=up, up_source="config scene.up" if "up" in cfg and cfg.get("up") is not None else "the synthetic flame's own (+y)",
+        frame_rate=1.0 / SECONDS_PER_FRAME, unit=None if cfg.get("unit") is None else read_float(
+            cfg["unit"], "config", "scene.unit", POSITIVE),
     )
+
+
+def turned_cameras(cams, Q: torch.Tensor):
+    """The camera batch ``cams`` in a world turned by ``Q`` (x' = Q x): each sees the same image."""
+    turn = torch.eye(4, dtype=torch.float64)
+    turn[:3, :3] = Q.T
+    w2c = cams.extrinsics.double() @ turn
+    return make_cameras(cams.intrinsics[:, :3, :3], w2c.float(), cams.height, cams.width)

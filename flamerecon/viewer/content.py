@@ -15,6 +15,7 @@ import torch
 
 from flamerecon.errors import RunFolderError
 from flamerecon.fit.reconstruct import Reconstruction
+from flamerecon.geometry.axes import up_vector
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.export import DENSITY_FILE
 from flamerecon.outputs.sequence import SweepError, find_frame_runs
@@ -40,11 +41,8 @@ class ViewFrame:
 
     @property
     def up(self) -> np.ndarray:
-        """The world direction upwards in the cameras' images (the mean of their -y axes), unit."""
-        rotations = self.scene.cameras.extrinsics[:, :3, :3].double().cpu().numpy()
-        up = -rotations[:, 1, :].mean(0)
-        norm = float(np.linalg.norm(up))
-        return up / norm if norm > 0 else np.array([0.0, 1.0, 0.0])
+        """The scene's up axis (``scene.up``) as a unit world vector (3,)."""
+        return np.asarray(up_vector(self.scene.up))
 
 
 def frame_of_run(run: Run | Reconstruction, label: str) -> ViewFrame:

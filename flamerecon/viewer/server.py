@@ -27,7 +27,7 @@ from flamerecon.errors import ConfigError
 from flamerecon.geometry.cameras import camera_centers, cameras_to, intrinsics_matrix, make_cameras
 from flamerecon.operators.projector import render_image
 from flamerecon.outputs.export import voxel_size
-from flamerecon.outputs.figures import centroid_index, to_display
+from flamerecon.outputs.figures import brightest_index, to_display
 from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface
 from flamerecon.scenes.convert import quaternion_matrix
 from flamerecon.viewer.content import SCORE_KEYS, ViewFrame, frames_of
@@ -109,14 +109,21 @@ def colour_bar(vmax: float, unit: str = DENSITY_UNIT, width: int = 256) -> np.nd
     return bar
 
 
+def scene_note(scene) -> str:
+    """The scene's up axis and length unit, as the panel says them."""
+    unit = "world units of unknown length" if scene.unit is None else f"1 world unit = {scene.unit:g} m"
+    return f"Up: {scene.up}; lengths: {unit}."
+
+
 def slice_points(frame: ViewFrame) -> tuple[np.ndarray, np.ndarray, float]:
-    """The three planes through the density's centre of mass (channels summed) as points at
+    """The three planes through the middle of the density's brightest region (channels summed,
+    :func:`~flamerecon.outputs.figures.brightest_index`) as points at
     their voxel centres (N, 3) world xyz, their inferno colours (N, 3) uint8 and the largest
     value on them (the colour bar's top)."""
     total = frame.density.sum(0).float().cpu().numpy()  # (nz, ny, nx)
     lo, hi = np.asarray(frame.grid.bbox_min, float), np.asarray(frame.grid.bbox_max, float)
     size = voxel_size(lo, hi, total.shape)
-    i, j, k = centroid_index(total[None])
+    i, j, k = brightest_index(total[None])
     nz, ny, nx = total.shape
     kk, jj, ii = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
     on = (ii == i) | (jj == j) | (kk == k)
@@ -274,7 +281,8 @@ class Viewer:
     def _gui(self) -> None:
         gui = self.server.gui
         gui.add_markdown("Drag to orbit, right-drag to pan, scroll to zoom; the density is rendered "
-                         "by flamerecon for your view (coarse while it moves). Red cameras are held out.")
+                         "by flamerecon for your view (coarse while it moves). Red cameras are held out. "
+                         + scene_note(self.frame.scene))
         if len(self.frames) > 1:
             self.time = gui.add_slider("time (frame)", min=0, max=len(self.frames) - 1, step=1, initial_value=0)
             self.time_label = gui.add_markdown(self.frames.labels[0])

@@ -4,6 +4,8 @@ and :func:`tiny_cfg`, the tiny config on it with the :data:`~.config.FAST` solve
 
 from __future__ import annotations
 
+import dataclasses
+
 import functools
 
 import torch
@@ -76,6 +78,8 @@ if "defective" not in SCENE_LOADERS:
     @register_scene("defective")
     def _load_defective(cfg):
         scene = tiny_synthetic()
+        if cfg.get("unit") is not None:  # ++scene.unit=M: the tiny flame measured in M metres per unit
+            scene = dataclasses.replace(scene, unit=float(cfg["unit"]))
         return scene if cfg["defect"] == "none" else _defect(scene, cfg["defect"])
 
 
