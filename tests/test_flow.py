@@ -271,3 +271,16 @@ def test_velocity_figures_are_drawn():
         assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
         assert image.std() > 10  # something was drawn
     assert math.isfinite(float(u.sum()))
+
+
+@pytest.mark.parametrize("up", ["+z", "-x", "-y"])
+def test_velocity_figures_stand_the_scene_up(up):
+    from flamerecon.geometry.axes import up_vector
+    from flamerecon.outputs.flow_figures import upright
+
+    rising = np.broadcast_to(np.array(up_vector(up)).reshape(3, 1, 1, 1), (3, *SHAPE)).copy()
+    density = blobs().numpy()
+    dens, vel, lo, hi, names = upright(density, rising, (0, 0, 0), (1.6, 1.8, 1.4), up)
+    assert np.allclose(vel[1], 1.0) and np.allclose(vel[[0, 2]], 0.0)  # drawn rising upwards
+    assert names[1] == up and float(dens.sum()) == pytest.approx(float(density.sum()))
+    assert sorted(n[-1] for n in names) == ["x", "y", "z"] and np.all(hi > lo)

@@ -262,8 +262,10 @@ def prediction_pictures(report: PredictionReport, frame_rate: float | None, spee
     u = cells_to_world(found["u"], frame.grid, frame_rate) if world else found["u"]
     unit = f" ({speed_unit})" if world else " (cells, per frame)"
     args = (frame.density.cpu().numpy(), u.cpu().numpy(), frame.grid.bbox_min, frame.grid.bbox_max)
-    out = {f"velocity_slices_{t:04d}": velocity_slices_figure(*args, f"frame {t} -> {t + 1}{unit}", length_unit),
-           f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}", length_unit)}
+    up = frame.scene.up
+    out = {f"velocity_slices_{t:04d}": velocity_slices_figure(*args, f"frame {t} -> {t + 1}{unit}", length_unit,
+                                                              up=up),
+           f"streamlines_{t:04d}": streamlines_figure(*args, f"frame {t}{unit}", length_unit, up=up)}
     for k, predictions in found["predictions"].items():
         target = found["targets"][k]
         named = {(m if m == "reconstruction" else f"{m}, {k} ahead"): d for m, d in predictions.items()}

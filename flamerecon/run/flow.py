@@ -136,9 +136,9 @@ def flow_sweep(sweep_dir: str | os.PathLike, options: FlowOptions | None = None,
                 title = f"frame {frames[n - 1]} -> {frames[n]} ({unit})"
                 box, length = (previous.grid.bbox_min, previous.grid.bbox_max), unit.removesuffix("/s")
                 write_png(folder / f"velocity_slices_{frames[n - 1]:04d}.png",
-                          velocity_slices_figure(density, velocity, *box, title, length))
+                          velocity_slices_figure(density, velocity, *box, title, length, up=up))
                 write_png(folder / f"streamlines_{frames[n - 1]:04d}.png",
-                          streamlines_figure(density, velocity, *box, title, length))
+                          streamlines_figure(density, velocity, *box, title, length, up=up))
             records.append(record)
             progress.update(n, f"frame {frames[n - 1]}: residual {pair.residual_none:.4f} -> {pair.residual:.4f}")
             previous = current
