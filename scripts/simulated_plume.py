@@ -121,6 +121,11 @@ def march(density: np.ndarray, box_min, box_max, K: np.ndarray, world_to_camera:
     shape = np.array(density.shape[::-1], float)  # nx, ny, nz
     cell = (hi - lo) / shape
     step = 0.5 * cell.min()
+    kji = np.argwhere(density > 1e-4 * density.max())  # below it: under 1e-4 of the peak, left out
+    if not kji.size:
+        return np.zeros((height, width))
+    inner_lo = lo + (kji.min(0)[::-1] - 1).clip(min=0) * cell  # rays are marched through the smoke's box only
+    inner_hi = lo + (kji.max(0)[::-1] + 2).clip(max=shape) * cell
     R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
     v, u = np.mgrid[0:height, 0:width]
     pixels = np.stack([u + 0.5, v + 0.5, np.ones_like(u, float)], -1).reshape(-1, 3)
@@ -128,7 +133,7 @@ def march(density: np.ndarray, box_min, box_max, K: np.ndarray, world_to_camera:
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     origin = -R.T @ t
     with np.errstate(divide="ignore", invalid="ignore"):
-        a, b = (lo - origin) / directions, (hi - origin) / directions
+        a, b = (inner_lo - origin) / directions, (inner_hi - origin) / directions
     near = np.nanmax(np.minimum(a, b), axis=1).clip(min=0)
     far = np.nanmin(np.maximum(a, b), axis=1)
     image = np.zeros(len(pixels))
