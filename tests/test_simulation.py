@@ -167,3 +167,27 @@ def test_simulation_options_are_checked():
         SimulationOptions(scheme="upwind")
     with pytest.raises(ArgumentError, match="simulation.iters: got 100000000"):
         SimulationOptions(iters=10**8)
+
+
+def test_without_self_advection_or_projection_a_velocity_holds():
+    u = smooth_field(3, seed=2)
+    smoke = Smoke(SHAPE, "+y", 0.0, 1.0, incompressible=False, self_advection=False)
+    x, held = smoke.step(blob(), u)
+    assert torch.equal(held, u) and torch.allclose(x, advect_field(blob(), u))
+    moved = Smoke(SHAPE, "+y", 0.0, 1.0, incompressible=False).step(blob(), u)[1]
+    assert not torch.allclose(moved, u)  # its own advection moves it
+
+
+def test_a_prediction_starts_from_the_velocity_given_or_its_own(tiny_setup):
+    frames = [blob((8.0, 5.0, 7.0))]
+    for _ in range(2):
+        frames.append(warp_volume(frames[-1], torch.zeros(3, *SHAPE, dtype=torch.float64)))  # at rest
+    given = torch.zeros(3, *SHAPE, dtype=torch.float64)
+    given[0] = 1.0  # one cell per frame along x
+    for start, moves in (("flow", True), ("assimilated", False)):
+        options = SimulationOptions(window=2, control=4, iters=3, inflow=0.05, margin=3, pad=4, start=start,
+                                    incompressible=False, fit_buoyancy=False)
+        found = assimilate(frames, [tiny_setup(f) for f in frames[1:]], options)
+        ahead = next(iter(found.predict(frames[-1].float(), 1, given)))
+        shifted = advect_field(frames[-1], given)
+        assert ((ahead.double() - shifted).norm() < 0.05 * shifted.norm()) == moves

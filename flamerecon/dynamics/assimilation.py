@@ -19,8 +19,10 @@ projector's adjoint as its gradient). Nothing after frame t enters.
 
 The simulation runs in a box around the smoke: the cells within ``margin`` of where any frame
 of the window has smoke (1 % of its peak) across the up axis, the whole grid along it (smoke
-rises). What it returns carries frame t on (:meth:`Assimilation.predict`): the velocity the
-simulation reached at frame t, the buoyancy, and frame t's own source held.
+rises). What it returns carries frame t on (:meth:`Assimilation.predict`): from the velocity the
+simulation reached at frame t (``start="assimilated"``) or from a velocity given, the flow
+fitted from frame t - 1 to t (``start="flow"``: the latest the images say), with the buoyancy
+fitted, frame t's own source held.
 """
 
 from __future__ import annotations
@@ -49,8 +51,11 @@ class SimulationOptions:
     to start from (cells per frame^2 at the window's peak density) and whether it is fitted
     (``fit_buoyancy``), L-BFGS ``iters``, the source region's ``inflow`` fraction of the box
     along ``up`` (None: the scene's), the advection ``scheme``, the projection's ``pad`` of still
-    cells, whether the velocity is projected at all (``incompressible``), the ``margin`` of the
-    simulated box around the smoke, the ``outside`` weight, ``frame_rate`` (None: the scene's)."""
+    cells, whether the velocity is projected at all (``incompressible``) and advected by itself
+    (``self_advection``), the ``margin`` of the simulated box around the smoke, the ``outside``
+    weight, where a prediction starts (``start``; ``flow``: the flow of the last frame pair;
+    ``assimilated``: the simulation's velocity at the window's end), ``frame_rate`` (None: the
+    scene's)."""
 
     window: int = 4
     control: int = 16
@@ -64,6 +69,8 @@ class SimulationOptions:
     margin: int = 6
     outside: float = 1.0
     incompressible: bool = True
+    self_advection: bool = True
+    start: str = "flow"
     up: str | None = None
     frame_rate: float | None = None
 
@@ -151,15 +158,22 @@ class Assimilation:
     def smoke(self) -> Smoke:
         o = self.options
         return Smoke(tuple(self.u.shape[1:]), self.up, self.buoyancy, self.peak, self.region, o.scheme, o.pad,
-                     o.incompressible)
+                     o.incompressible, o.self_advection)
 
-    def predict(self, density: torch.Tensor, steps: int) -> Iterator[torch.Tensor]:
+    def predict(self, density: torch.Tensor, steps: int, velocity: torch.Tensor | None = None
+                ) -> Iterator[torch.Tensor]:
         """``density`` (C, nz, ny, nx), the window's last frame, carried 1, 2, ... ``steps``
-        frames on (each yielded on the whole grid, zero outside the box), the source held."""
+        frames on (each yielded on the whole grid, zero outside the box), the source held; from
+        ``velocity`` (3, nz, ny, nx), cells per frame, where ``options.start`` is ``flow`` and one
+        is given (projected where incompressible), else from :attr:`u`."""
         x = density.detach().to(self.u)[(slice(None), *self.box)]
+        u = self.u
+        if velocity is not None and self.options.start == "flow":
+            u = velocity.detach().to(self.u)[(slice(None), *self.box)]
+            u = project(u, int(self.options.pad)) if self.options.incompressible else u
         full = torch.zeros(density.shape, dtype=self.u.dtype, device=self.u.device)
         with torch.no_grad():
-            for x_n, _ in self.smoke().run(x, self.u, steps, lambda n: self.source):
+            for x_n, _ in self.smoke().run(x, u, steps, lambda n: self.source):
                 out = full.clone()
                 out[(slice(None), *self.box)] = x_n
                 yield out.to(density.dtype)
@@ -207,7 +221,8 @@ def assimilate(densities: Sequence[torch.Tensor], setups: Sequence[Setup], optio
     region = regions[-1]
 
     def simulate(c: torch.Tensor, buoyancy: torch.Tensor) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
-        smoke = Smoke(shape, up, buoyancy, peak, region, options.scheme, int(options.pad), options.incompressible)
+        smoke = Smoke(shape, up, buoyancy, peak, region, options.scheme, int(options.pad), options.incompressible,
+                      options.self_advection)
         u0 = upsample_displacement(c, shape)
         if options.incompressible:
             u0 = project(u0, int(options.pad))

@@ -206,7 +206,8 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
         simulated = {}
         if t in fits:
             clock = time.perf_counter()
-            simulated = {k + 1: d for k, d in enumerate(fits[t].predict(x, horizon)) if k + 1 in horizons}
+            start = pairs[t - 1].u if t - 1 in pairs else None  # the latest flow: nothing after t
+            simulated = {k + 1: d for k, d in enumerate(fits[t].predict(x, horizon, start)) if k + 1 in horizons}
             simulated_seconds.append((time.perf_counter() - clock) / horizon)
         for k in horizons:
             shape = tuple(x.shape[1:])

@@ -5,13 +5,14 @@ State: a density ``x`` (C, nz, ny, nx), the reconstruction's emission density, a
 ``u`` (3, nz, ny, nx) in cells per frame, components (x, y, z), at the cell centres. One step
 is one frame of the capture (dt = 1 / frame rate seconds):
 
-1. advection: x <- x(p - u(p)), u <- u(p - u(p)), semi-Lagrangian (trilinear, the velocity
-   held at the border, the density zero outside the grid) or MacCormack (a forward and a
-   backward trace, the error corrected, clamped to the neighbourhood's range);
+1. advection: x <- x(p - u(p)), u <- u(p - u(p)) (the velocity's own advection, unless
+   ``self_advection`` is off), semi-Lagrangian (trilinear, the velocity held at the border, the
+   density zero outside the grid) or MacCormack (a forward and a backward trace, the error
+   corrected, clamped to the neighbourhood's range);
 2. buoyancy: u <- u + buoyancy * (sum_c x) / peak * e_up, ``buoyancy`` the acceleration of the
    densest smoke in cells per frame^2 (``peak``: the first frame's channel-sum peak, so that the
    coefficient does not depend on the density's units), ``e_up`` the scene's up axis;
-3. pressure projection: u <- u - grad p with lap p = div u, a Leray projection in Fourier space
+3. pressure projection (where ``incompressible``): u <- u - grad p with lap p = div u, a Leray projection in Fourier space
    on the box padded by ``pad`` cells of still air on each side (the wavenumbers of central
    differences, so the projected velocity's central-difference divergence is zero up to float
    precision away from the padding's wrap-around);
@@ -101,15 +102,17 @@ def central_divergence(u: torch.Tensor) -> torch.Tensor:
 class Smoke:
     """The simulator's fixed parts: the grid ``shape`` (nz, ny, nx), the ``up`` axis, the
     ``buoyancy`` (cells per frame^2 at density ``peak``), the source ``region`` (nz, ny, nx) in
-    [0, 1] (None: no source), the advection ``scheme`` and the projection's ``pad``."""
+    [0, 1] (None: no source), the advection ``scheme``, the projection's ``pad``, whether the
+    velocity is projected (``incompressible``) and advected by itself (``self_advection``)."""
 
     def __init__(self, shape: tuple[int, int, int], up: str, buoyancy: torch.Tensor | float, peak: float,
                  region: torch.Tensor | None = None, scheme: str = "semi_lagrangian", pad: int = 8,
-                 incompressible: bool = True) -> None:
+                 incompressible: bool = True, self_advection: bool = True) -> None:
         if scheme not in SCHEMES:
             raise ValueError(f"scheme: got {scheme!r}; one of {SCHEMES}")
         self.shape, self.up, self.buoyancy, self.peak = tuple(shape), up, buoyancy, float(peak)
         self.region, self.scheme, self.pad, self.incompressible = region, scheme, int(pad), incompressible
+        self.self_advection = self_advection
 
     def transport(self, x: torch.Tensor, u: torch.Tensor, source: torch.Tensor | None = None) -> torch.Tensor:
         """The density (C, nz, ny, nx) one frame on along a given velocity ``u`` (3, nz, ny, nx),
@@ -127,7 +130,7 @@ class Smoke:
         """One frame (module doc): (x, u) -> (x', u'); ``source`` (C, nz, ny, nx): the density
         injected in the region this frame (None: none)."""
         x_next = advect_field(x, u, self.scheme, "zeros")
-        u_next = advect_field(u, u, self.scheme, "border")
+        u_next = advect_field(u, u, self.scheme, "border") if self.self_advection else u
         direction = torch.tensor(up_vector(self.up), dtype=u.dtype, device=u.device).reshape(3, 1, 1, 1)
         u_next = u_next + self.buoyancy * (x_next.sum(0, keepdim=True) / self.peak) * direction
         if self.incompressible:

@@ -238,6 +238,8 @@ RULES: dict[str, Rule] = {
     "simulation.margin": Rule(integer(0), cap=_fixed(MAX_SHIFT, "cells kept around the smoke, each side")),
     "simulation.outside": Rule(number(0)),
     "simulation.incompressible": Rule(boolean),
+    "simulation.self_advection": Rule(boolean),
+    "simulation.start": Rule(choice("flow", "assimilated")),
     "simulation.up": Rule(choice("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z"), null=True),
     "simulation.frame_rate": Rule(number(0, lo_open=True), null=True),
     "flow.up": Rule(choice("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z"), null=True),
