@@ -68,22 +68,49 @@ BUOYANCY = 3.0  # m/s^2 per unit of density
 SEED = 3
 
 
-def simulate_phiflow(box_min, box_max, frames: int, cells: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """PhiFlow's plume (module doc) on ``cells`` (x, y, z): densities (F, nz, ny, nx) and
-    cell-centre velocities (F, 3, nz, ny, nx) in m/s, frames 0 .. F-1 at :data:`FPS`."""
+def _phiflow():
+    """PhiFlow's ``phi.flow`` on its NumPy backend, with phiml 1.16's sparse matrix build made to
+    ravel indices in int64 (in int32 it overflows above about 46,000 cells)."""
     try:
         from phi import flow as phi
         from phiml.backend._numpy_backend import NumPyBackend
     except ImportError as err:
         raise ImportError("simulated_plume.py needs PhiFlow: pip install phiflow") from err
     ravel = NumPyBackend.ravel_multi_index
-    # phiml 1.16's sparse matrix build ravels indices in int32 and overflows above ~46,000 cells
-    NumPyBackend.ravel_multi_index = lambda self, index, shape, mode="undefined": ravel(
-        self, np.asarray(index, np.int64), shape, mode)
-    nx, ny, nz = cells
+    if not getattr(ravel, "int64", False):
+        def int64_ravel(self, index, shape, mode="undefined"):
+            return ravel(self, np.asarray(index, np.int64), shape, mode)
+
+        int64_ravel.int64 = True
+        NumPyBackend.ravel_multi_index = int64_ravel
+    return phi
+
+
+def _phi_grids(phi, box_min, box_max, cells):
+    """PhiFlow's domain: (bounds, the velocity's boundary: closed sides and floor, open top)."""
     lo, hi = np.asarray(box_min, float), np.asarray(box_max, float)
     bounds = phi.Box(x=(lo[0], hi[0]), y=(lo[1], hi[1]), z=(lo[2], hi[2]))
-    closed = phi.extrapolation.combine_sides(x=0, y=(0, phi.extrapolation.ZERO_GRADIENT), z=0)
+    return bounds, phi.extrapolation.combine_sides(x=0, y=(0, phi.extrapolation.ZERO_GRADIENT), z=0)
+
+
+def _phi_step(phi, smoke, velocity, pressure, mask, rate: float, dt: float):
+    """One PhiFlow step (module doc): MacCormack density and the source, buoyancy,
+    semi-Lagrangian velocity, the pressure projection by conjugate gradients."""
+    smoke = phi.advect.mac_cormack(smoke, velocity, dt) + rate * dt * mask
+    force = phi.resample(smoke * (0, BUOYANCY, 0), to=velocity)
+    velocity = phi.advect.semi_lagrangian(velocity, velocity, dt) + force * dt
+    velocity, pressure = phi.fluid.make_incompressible(
+        velocity, (), phi.Solve("scipy-CG", 1e-3, 1e-3, max_iterations=3000, x0=pressure, rank_deficiency=0))
+    return smoke, velocity, pressure
+
+
+def simulate_phiflow(box_min, box_max, frames: int, cells: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """PhiFlow's plume (module doc) on ``cells`` (x, y, z): densities (F, nz, ny, nx) and
+    cell-centre velocities (F, 3, nz, ny, nx) in m/s, frames 0 .. F-1 at :data:`FPS`."""
+    phi = _phiflow()
+    nx, ny, nz = cells
+    lo, hi = np.asarray(box_min, float), np.asarray(box_max, float)
+    bounds, closed = _phi_grids(phi, box_min, box_max, cells)
     velocity = phi.StaggeredGrid(0, closed, bounds, x=nx, y=ny, z=nz)
     smoke = phi.CenteredGrid(0, phi.extrapolation.ZERO_GRADIENT, bounds, x=nx, y=ny, z=nz)
     pressure = None
@@ -98,16 +125,54 @@ def simulate_phiflow(box_min, box_max, frames: int, cells: tuple[int, int, int])
     for f in range(frames):
         rate = 4.0 * (0.6 + 0.8 * rng.random())  # density per second, flickering frame to frame
         for _ in range(SUBSTEPS):
-            smoke = phi.advect.mac_cormack(smoke, velocity, dt) + rate * dt * mask
-            force = phi.resample(smoke * (0, BUOYANCY, 0), to=velocity)
-            velocity = phi.advect.semi_lagrangian(velocity, velocity, dt) + force * dt
-            velocity, pressure = phi.fluid.make_incompressible(
-                velocity, (), phi.Solve("scipy-CG", 1e-3, 1e-3, max_iterations=3000, x0=pressure, rank_deficiency=0))
+            smoke, velocity, pressure = _phi_step(phi, smoke, velocity, pressure, mask, rate, dt)
         densities.append(smoke.values.numpy("z,y,x"))
         velocities.append(np.moveaxis(velocity.at_centers().values.numpy("z,y,x,vector"), -1, 0))
         print(f"phiflow: frame {f + 1}/{frames}, peak density {densities[-1].max():.3f}, peak speed "
               f"{np.linalg.norm(velocities[-1], axis=0).max():.3f} m/s", flush=True)
     return np.stack(densities).astype(np.float32), np.stack(velocities).astype(np.float32)
+
+
+def phiflow_step_seconds(density: np.ndarray, velocity: np.ndarray, box_min, box_max, steps: int = 3) -> float:
+    """Median seconds of one PhiFlow step (as :func:`simulate_phiflow` takes them, the pressure
+    solve started from zero) from a frame's density (nz, ny, nx) and velocity (3, nz, ny, nx)."""
+    phi = _phiflow()
+    nz, ny, nx = density.shape
+    bounds, closed = _phi_grids(phi, box_min, box_max, (nx, ny, nz))
+    smoke = phi.CenteredGrid(phi.math.tensor(density.transpose(2, 1, 0), phi.spatial("x,y,z")),
+                             phi.extrapolation.ZERO_GRADIENT, bounds)
+    centred = phi.CenteredGrid(phi.math.tensor(velocity.transpose(3, 2, 1, 0), phi.spatial("x,y,z"),
+                                               phi.channel(vector="x,y,z")), 0, bounds)
+    flow = phi.StaggeredGrid(centred, closed, bounds, x=nx, y=ny, z=nz)
+    seconds = []
+    for _ in range(steps):
+        clock = time.perf_counter()
+        smoke, flow, _ = _phi_step(phi, smoke, flow, None, smoke * 0, 0.0, 1.0 / (FPS * SUBSTEPS))
+        seconds.append(time.perf_counter() - clock)
+    return float(np.median(seconds))
+
+
+def our_step_seconds(density: np.ndarray, velocity: np.ndarray, cells_per_second: np.ndarray, steps: int = 3
+                     ) -> tuple[float, float]:
+    """Seconds of one step of flamerecon's simulator (semi-Lagrangian, buoyancy, projection) on
+    PhiFlow's last frame, (forward, forward and backward through autograd), medians of ``steps``."""
+    from flamerecon.dynamics.simulation import Smoke
+
+    x = torch.from_numpy(density[None]).double()
+    u = torch.from_numpy(velocity / (cells_per_second.reshape(3, 1, 1, 1) * FPS)).double()
+    smoke = Smoke(tuple(density.shape), "+y", 0.05, float(density.max()) or 1.0, pad=8)
+    forward, both = [], []
+    for _ in range(steps):
+        clock = time.perf_counter()
+        with torch.no_grad():
+            smoke.step(x, u)
+        forward.append(time.perf_counter() - clock)
+        clock = time.perf_counter()
+        leaf = u.clone().requires_grad_(True)
+        x_next, _ = smoke.step(x, leaf)
+        x_next.sum().backward()
+        both.append(time.perf_counter() - clock)
+    return float(np.median(forward)), float(np.median(both))
 
 
 def march(density: np.ndarray, box_min, box_max, K: np.ndarray, world_to_camera: np.ndarray, height: int,
@@ -216,6 +281,12 @@ def main(argv: list[str] | None = None) -> int:
             densities, velocities = simulate_phiflow(box_min, box_max, args.frames, cells)
             if cached is not None:
                 np.savez(cached, density=densities, velocity=velocities)
+        phi_step = phiflow_step_seconds(densities[-1], velocities[-1], box_min, box_max)
+        cell_size = (np.asarray(box_max, float) - np.asarray(box_min, float)) / np.asarray(cells, float)
+        ours, ours_grad = our_step_seconds(densities[-1], velocities[-1], cell_size)
+        print(f"one step on {cells} cells: PhiFlow {phi_step:.2f} s (NumPy, CG pressure solve); flamerecon's "
+              f"simulator {ours:.2f} s, {ours_grad:.2f} s with its gradient (load average {os.getloadavg()[0]:.1f})",
+              flush=True)
         simulated_s = time.perf_counter() - started
         H, W = base.image_size
         cams = cameras_of(base)
@@ -305,7 +376,8 @@ def main(argv: list[str] | None = None) -> int:
         for key, s in summary["predicted"].items():
             print(f"predicted {key:<16} volume relative L2 {s['volume_rel_l2']:.3f}, held-out {s['heldout_psnr']:.2f} dB")
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20
-        timing = {"phiflow_s": simulated_s, "render_s_per_frame": rendered_s,
+        timing = {"phiflow_s": simulated_s, "phiflow_step_s": phi_step, "ours_step_s": ours,
+                  "ours_step_with_gradient_s": ours_grad, "render_s_per_frame": rendered_s,
                   "reconstruction_s_per_frame": float(np.mean(times)), "fits_s_per_pair": fitted_s,
                   "peak_rss_gb": peak}
         print(f"PhiFlow {simulated_s:.0f} s ({args.frames} frames), ray marcher {rendered_s:.1f} s per frame, "
