@@ -27,7 +27,9 @@ reconstruction. On ``scene=plume`` (a known
 velocity) it also prints and writes each velocity's error: relative L2 and mean angle over the
 smoke (``velocity_error``). ``--variant NAME:KEY=VALUE,...`` (repeatable) scores another flow
 beside the default as ``flow:NAME`` (e.g. ``nodiv:divergence=0``): settings compared on the same
-frames. ``--figures DIR`` draws frame FIRST's velocity (speed and vorticity
+frames; ``--simulation-variant NAME:KEY=VALUE,...`` scores another simulation as
+``simulation:NAME`` (e.g. ``physical:incompressible=true,self_advection=true,fit_buoyancy=true,start=assimilated``).
+``--figures DIR`` draws frame FIRST's velocity (speed and vorticity
 slices, streamlines) and, for each horizon, each held-out view captured beside every
 prediction, with its PSNR, and writes the simulation's and the reconstructions' densities at
 each horizon as ``.vti`` files with a ``.pvd`` index each (ParaView).
@@ -80,6 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--horizons", type=at_least(1), nargs="+", default=[1, 2, 5, 10],
                         help="frames ahead to predict (default: 1 2 5 10; up to 30 and more)")
     parser.add_argument("--no-simulation", action="store_true", help="leave the simulator's prediction out")
+    parser.add_argument("--simulation-variant", action="append", default=[], metavar="NAME:KEY=VALUE,...",
+                        help="another simulation beside the default, e.g. physical:incompressible=true (repeatable)")
     parser.add_argument("--out", type=output_file, default=None, help="write the table as JSON here")
     parser.add_argument("--variant", action="append", default=[], metavar="NAME:KEY=VALUE,...",
                         help="another flow to score beside the default, e.g. nodiv:divergence=0 (repeatable)")
@@ -96,8 +100,16 @@ def main(argv: list[str] | None = None) -> int:
 
     def run() -> None:
         flow = flow_options([o for o in args.overrides if o.startswith("flow.")])
-        simulation = None if args.no_simulation else section_options(
-            SimulationOptions, "simulation", [o for o in args.overrides if o.startswith("simulation.")])
+        given = [o for o in args.overrides if o.startswith("simulation.")]
+        simulation = None if args.no_simulation else section_options(SimulationOptions, "simulation", given)
+        simulation_variants = {}
+        for text in args.simulation_variant:
+            name, _, settings = text.partition(":")
+            if not name or not settings:
+                raise ArgumentError(f"--simulation-variant: got '{text}'; give NAME:KEY=VALUE[,KEY=VALUE...], e.g. "
+                                    "physical:incompressible=true")
+            simulation_variants[name] = section_options(SimulationOptions, "simulation",
+                                                        [*given, *(f"simulation.{kv}" for kv in settings.split(","))])
         variants = {}
         for text in args.variant:
             name, _, settings = text.partition(":")
@@ -127,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{simulation.as_dict() if simulation else 'off'}", flush=True)
         report = predict_sequence(lambda t: load_scene({**cfg.scene, "frame": t}), options, flow, args.frames[0],
                                   args.frames[1], horizons, true_velocity=truth, variants=variants,
-                                  simulation=simulation)
+                                  simulation=simulation, simulation_variants=simulation_variants)
         print_table(report.table)
         print(f"uniform shift fitted to the sequence: {report.shift:.2f} cells per frame")
         timing = report.timing
@@ -142,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"frame rate {rate if rate is not None else 'not known (velocities in cells per frame)'}"
               + (" frames per second" if rate is not None else ""))
         for record in report.simulations:
-            print(f"simulation from frame {record['frame']}: buoyancy {record['buoyancy_cells_per_frame2']:.4f} cells "
+            print(f"{record['method']} from frame {record['frame']}: buoyancy {record['buoyancy_cells_per_frame2']:.4f} cells "
                   f"per frame^2, window residual {sum(record['residual_unmoved']):.4f} unmoved -> "
                   f"{sum(record['residual']):.4f}, {record['seconds']:.1f} s")
         out = report.as_dict()

@@ -141,7 +141,8 @@ def test_a_simulation_fitted_to_a_window_finds_the_rise_that_made_it(tiny_setup)
     frames = [blob((8.0, 5.0, 7.0))]
     for _ in range(3):
         frames.append(warp_volume(frames[-1], rise))
-    options = SimulationOptions(window=3, control=4, smooth=1.0, iters=15, inflow=0.05, margin=3, pad=4)
+    options = SimulationOptions(window=3, control=4, smooth=1.0, iters=15, inflow=0.05, margin=3, pad=4,
+                                incompressible=True, self_advection=True, fit_buoyancy=True, start="assimilated")
     found = assimilate(frames, [tiny_setup(f) for f in frames[1:]], options)
     assert sum(found.record["residual"]) < 0.1 * sum(found.record["residual_unmoved"])
     inside = frames[-1][0] > 0.3

@@ -132,17 +132,21 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
                      first: int, last: int, horizons: Sequence[int], device: torch.device | str | None = None,
                      true_velocity: Callable[[VoxelGrid], torch.Tensor] | None = None,
                      speeds: Sequence[float] = SPEEDS, variants: Mapping[str, FlowOptions] | None = None,
-                     simulation: SimulationOptions | None = None) -> PredictionReport:
+                     simulation: SimulationOptions | None = None,
+                     simulation_variants: Mapping[str, SimulationOptions] | None = None) -> PredictionReport:
     """Predictions from frames ``first`` .. ``last`` (module doc); ``load(t)`` gives frame t's
     scene (frame ``last`` + the longest horizon is loaded first, so that a capture too short is
     refused before any reconstruction); ``true_velocity(grid)`` (cells per frame), when the
     truth is known, is compared with every fitted velocity; ``variants`` {name: options}: more
     flows, each its own method ``flow:<name>`` (the same frames, baselines and scores: a
     comparison of settings); ``simulation``: the simulator's options (None: no ``simulation``
-    method). Progress is logged per frame."""
+    method), ``simulation_variants`` {name: options}: more, each its own method
+    ``simulation:<name>``. Progress is logged per frame."""
     device = resolve_device(options.device if device is None else str(device))
     horizon = max(horizons)
-    window = int(simulation.window) if simulation is not None else 0
+    sims = {} if simulation is None else {"simulation": simulation, **{
+        f"simulation:{name}": o for name, o in (simulation_variants or {}).items()}}
+    window = max([int(o.window) for o in sims.values()], default=0)
     start = max(first - max(window, 1), 0)
     load(last + horizon)  # the capture's end, before any work
     frames: dict[int, Frame] = {}
@@ -153,7 +157,7 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
     errors: list[dict] = []
     simulated_errors: list[dict] = []
     setups: dict[int, object] = {}  # the last ``window`` frames' setups, while a simulation may start there
-    fits: dict[int, Assimilation] = {}
+    fits: dict[str, dict[int, Assimilation]] = {name: {} for name in sims}
     progress = Progress("predict: reconstructions and flows", last + horizon - start + 1, "frame")
     previous: dict[str, torch.Tensor | None] = dict.fromkeys(chains)
     up = up_of(None, flow.up)
@@ -175,25 +179,28 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
                     errors.append({"frame": t - 1, **velocity_error(pair.u, true_velocity(rec.grid).to(pair.u),
                                                                     source)})
             curves.append(shift_residuals(source, setup, speeds, up))
-        if simulation is not None and t <= last:
+        if sims and t <= last:
             setups[t] = setup
             setups.pop(t - window, None)
-            span = min(window, t - start)
-            if t >= first and span >= 1:  # frames t - span .. t: nothing after t
-                init = pairs[t - span].control if t - span in pairs else None
-                fits[t] = assimilate([frames[s].density for s in range(t - span, t + 1)],
-                                     [setups[s] for s in range(t - span + 1, t + 1)],
-                                     replace(simulation, window=span), init)
-                if true_velocity is not None:
-                    simulated_errors.append({"frame": t, **velocity_error(
-                        fits[t].velocity().float(), true_velocity(rec.grid).to(pairs[t - 1].u), frames[t].density)})
+            for name, chosen in sims.items():
+                span = min(int(chosen.window), t - start)
+                if t >= first and span >= 1:  # frames t - span .. t: nothing after t
+                    init = pairs[t - span].control if t - span in pairs else None
+                    fits[name][t] = assimilate([frames[s].density for s in range(t - span, t + 1)],
+                                               [setups[s] for s in range(t - span + 1, t + 1)],
+                                               replace(chosen, window=span), init)
+            if true_velocity is not None and t in fits["simulation"]:
+                simulated_errors.append({"frame": t, **velocity_error(
+                    fits["simulation"][t].velocity().float(), true_velocity(rec.grid).to(pairs[t - 1].u),
+                    frames[t].density)})
         del rec, setup
+        seconds = sum(f[t].record["seconds"] for f in fits.values() if t in f)
         progress.update(t - start + 1, f"frame {t}: {frames[t].seconds:.1f} s"
                         + (f", flow {pairs[t - 1].seconds:.1f} s" if t - 1 in pairs else "")
-                        + (f", simulation fitted in {fits[t].record['seconds']:.1f} s" if t in fits else ""))
+                        + (f", simulations {seconds:.1f} s" if seconds else ""))
     setups.clear()
     shift = float(speeds[int(np.argmin(np.sum(curves, 0)))])
-    methods = [*METHODS, *list(chains)[1:]]
+    methods = [*METHODS, *list(chains)[1:], *list(sims)[1:]]
     table: dict = {k: {m: {s: [] for s in SCORES} for m in methods} for k in horizons}
     per_frame: dict = {}
     first_frame: dict = {}
@@ -203,12 +210,14 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
     for n, t in enumerate(range(first, last + 1)):
         x = frames[t].density
         per_frame[t] = {}
-        simulated = {}
-        if t in fits:
-            clock = time.perf_counter()
-            start = pairs[t - 1].u if t - 1 in pairs else None  # the latest flow: nothing after t
-            simulated = {k + 1: d for k, d in enumerate(fits[t].predict(x, horizon, start)) if k + 1 in horizons}
-            simulated_seconds.append((time.perf_counter() - clock) / horizon)
+        simulated: dict[str, dict[int, torch.Tensor]] = {}
+        latest = pairs[t - 1].u if t - 1 in pairs else None  # the latest flow: nothing after t
+        for name, found_fits in fits.items():
+            if t in found_fits:
+                clock = time.perf_counter()
+                simulated[name] = {k + 1: d for k, d in enumerate(found_fits[t].predict(x, horizon, latest))
+                                   if k + 1 in horizons}
+                simulated_seconds.append((time.perf_counter() - clock) / horizon)
         for k in horizons:
             shape = tuple(x.shape[1:])
             found = {"flow": advect(x, pairs[t].u, k), "persistence": x,
@@ -216,8 +225,7 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
                      "reconstruction": frames[t + k].density}
             if t - 1 in pairs:
                 found["flow_causal"] = advect(x, pairs[t - 1].u, k)
-            if k in simulated:
-                found["simulation"] = simulated[k]
+            found.update({name: ahead[k] for name, ahead in simulated.items()})
             found.update({name: advect(x, fitted[name][t].u, k) for name in list(chains)[1:]})
             per_frame[t][k] = {m: view_scores(d, frames[t + k], silhouette) for m, d in found.items()}
             if t == first:
@@ -235,14 +243,14 @@ def predict_sequence(load: Callable[[int], Scene], options: ReconstructionOption
     timing = {"reconstruction_s_per_frame": float(np.mean([f.seconds for f in frames.values()])),
               "flow_s_per_pair_warm": float(np.mean(warm)) if warm else math.nan,
               "flow_s_per_pair_cold": float(np.mean(cold)) if cold else math.nan,
-              "simulation_fit_s_per_start_frame": (float(np.mean([f.record["seconds"] for f in fits.values()]))
-                                                   if fits else math.nan),
+              "simulation_fit_s_per_start_frame": (float(np.mean([f.record["seconds"] for f in fits["simulation"].values()]))
+                                                   if fits.get("simulation") else math.nan),
               "simulation_s_per_frame_ahead": float(np.mean(simulated_seconds)) if simulated_seconds else math.nan,
               "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20}
     records = [{**pairs[t].record(), **{f"{name}:residual": fitted[name][t].residual for name in list(chains)[1:]},
                 **{f"{name}:relative_divergence": fitted[name][t].relative_divergence for name in list(chains)[1:]}}
                for t in sorted(pairs)]
-    simulations = [{"frame": t, **fits[t].record} for t in sorted(fits)]
+    simulations = [{"method": name, "frame": t, **found[t].record} for name, found in fits.items() for t in sorted(found)]
     return PredictionReport(means, per_frame, shift, records, errors, timing, first_frame, simulations,
                             simulated_errors)
 
