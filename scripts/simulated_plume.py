@@ -29,7 +29,9 @@ mean angle, beside zero velocity (relative L2 1) and the best uniform upward vel
 the truth there (least squares). Frames predicted k = 1, 5, 10 ahead (the flow's and the
 simulator's) are compared with the simulated ones: the volume's relative L2 error and the
 held-out camera's PSNR. Prints the table, time and peak memory; ``--out`` writes it as JSON.
-``--cache DIR`` keeps the PhiFlow simulation (``plume_phiflow.npz``) for the next call.
+``--cache DIR`` keeps the PhiFlow simulation (``plume_phiflow.npz``) for the next call; every
+call times one step of PhiFlow and of flamerecon's simulator (forward, and with its gradient) on
+the last simulated frame, and ``--speed`` stops there.
 """
 
 from __future__ import annotations
@@ -242,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="frame pairs compared: FIRST -> FIRST+1 .. LAST -> LAST+1 (default 14 28)")
     parser.add_argument("--window", type=at_least(1), default=4, help="the simulator's window (default 4)")
     parser.add_argument("--cache", type=output_folder, default=None, help="keep PhiFlow's simulation here")
+    parser.add_argument("--speed", action="store_true",
+                        help="time one step of PhiFlow and of flamerecon's simulator on the last frame, then stop")
     parser.add_argument("--cells", type=at_least(4), nargs=3, default=[64, 96, 64], metavar=("NX", "NY", "NZ"),
                         help="PhiFlow's cells (default 64 96 64)")
     parser.add_argument("overrides", nargs="*",
@@ -286,13 +290,15 @@ def main(argv: list[str] | None = None) -> int:
             densities, velocities = simulate_phiflow(box_min, box_max, args.frames, cells)
             if cached is not None:
                 np.savez(cached, density=densities, velocity=velocities)
+        simulated_s = time.perf_counter() - started
         phi_step = phiflow_step_seconds(densities[-1], velocities[-1], box_min, box_max)
         cell_size = (np.asarray(box_max, float) - np.asarray(box_min, float)) / np.asarray(cells, float)
         ours, ours_grad = our_step_seconds(densities[-1], velocities[-1], cell_size)
         print(f"one step on {cells} cells: PhiFlow {phi_step:.2f} s (NumPy, CG pressure solve); flamerecon's "
               f"simulator {ours:.2f} s, {ours_grad:.2f} s with its gradient (load average {os.getloadavg()[0]:.1f})",
               flush=True)
-        simulated_s = time.perf_counter() - started
+        if args.speed:
+            return
         H, W = base.image_size
         cams = cameras_of(base)
         clock = time.perf_counter()
