@@ -28,7 +28,7 @@ from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
 from flamerecon.fit.uncertainty_options import UncertaintyOptions
-from flamerecon.geometry.axes import up_vector
+from flamerecon.geometry.axes import ground_frame, up_vector
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.projector import camera_rays, integrate_dense, render_image
@@ -40,11 +40,11 @@ from flamerecon.outputs.export import (
     UNCERTAINTY_FILE,
     Density,
     export_density,
-    recorded_conventions,
     load_density,
+    recorded_conventions,
     sigma_names,
 )
-from flamerecon.outputs.figures import _angles, azimuth_zero, orbit_cameras, write_png
+from flamerecon.outputs.figures import _angles, orbit_cameras, write_png
 from flamerecon.outputs.mesh import DEFAULT_ISO
 from flamerecon.outputs.sequence import SweepError, find_frame_runs
 from flamerecon.resources import config_dir
@@ -242,17 +242,19 @@ def export(result, stem: str | os.PathLike, formats: Iterable[str] | str = ("vti
 def view(result, port: int = 8080, host: str = "127.0.0.1", device: str = "auto"):
     """Serve ``result`` (a Reconstruction, a loaded Run, a run folder or a multirun folder) to a
     browser, as ``flamerecon view`` does, and return the :class:`~flamerecon.viewer.server.Viewer`
-    while it serves in the background: open its ``url``, call its ``stop()`` when done. Needs
-    ``pip install 'flamerecon[view]'``."""
+    while it serves in the background: open its ``url``, call its ``stop()`` when done. A host
+    that does not resolve or is not this machine's, or no free port from ``port`` on, is a
+    ConfigError before anything is served. Needs ``pip install 'flamerecon[view]'``."""
     instance("view.result", result, (Reconstruction, Run, str, os.PathLike),
              "a Reconstruction, a Run, or a run or multirun folder")
     value("view.port", port, integer(1, 65535))
     instance("view.host", host, str, "an address such as 127.0.0.1")
     instance("view.device", device, (str, torch.device), "a device name (auto, cpu, cuda)")
     resolve_device(device, "view.device")
+    from flamerecon.viewer.address import Fields
     from flamerecon.viewer.server import Viewer
 
-    viewer = Viewer(result, host, port, str(device))
+    viewer = Viewer(result, host, port, str(device), fields=Fields("view.host", "view.port"))
     print(f"flamerecon view: open {viewer.url}")
     return viewer
 
@@ -280,8 +282,7 @@ def framing_camera(result, azimuth_deg=0.0, elevation_deg: float = 15.0, width: 
     rotations = result.scene.cameras.extrinsics[:, :3, :3].double().cpu().numpy()
     up = np.asarray(up_vector(result.scene.up))
     toward = -rotations[0, 2, :]  # from the box towards the first camera
-    axis = azimuth_zero(up)
-    axis = (axis - (axis @ up) * up) / np.linalg.norm(axis - (axis @ up) * up)
+    axis = ground_frame(up)[0]
     azimuths = _angles("framing_camera.azimuth_deg", azimuth_deg)
     azimuths = azimuths + float(np.degrees(np.arctan2(toward @ np.cross(up, axis), toward @ axis)))
     probe = orbit_cameras(azimuths, elevation_deg, 1.0, target, width, height, fov_deg, up)

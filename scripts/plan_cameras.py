@@ -4,14 +4,20 @@
     python scripts/plan_cameras.py --check-synthetic [train.py overrides ...]
     python scripts/plan_cameras.py --check-loo --frames 65,72 [train.py overrides ...]
 
-RUN_DIR: ranks candidate cameras by the predicted reduction of the run's confidence volume's
-variance (:mod:`flamerecon.evaluate.camera_planning`; the confidence read from the run's
-uncertainty.npz, else solved now): ``--orbit N`` cameras evenly around the box at the rig's mean
-distance and elevation (default 24), or the cameras of ``--cameras`` (a cameras.json), each with
-the first camera's intrinsics and image size. Prints the ranking, writes RUN_DIR/camera_plan.json
-and RUN_DIR/renders/camera_plan.png (top view: the rig and the ranked candidates). ``--noise``:
-the one-sigma noise of a new camera's pixels (default: the run's training residual inside the
-silhouettes, from its training PSNR there).
+RUN_DIR (any run: every camera fitted, or some held out): ranks candidate cameras by the
+predicted reduction of the run's confidence volume's variance
+(:mod:`flamerecon.evaluate.camera_planning`; the confidence read from the run's uncertainty.npz,
+else solved now): ``--orbit N`` cameras evenly around the box at the rig's mean distance and
+elevation (default 24, at most 360), or the cameras of ``--cameras`` (a cameras.json), each with
+the first camera's intrinsics and image size. Each candidate is placed in world azimuth and
+elevation about the scene's up axis (azimuth 0 and 90 named in what it prints), with the
+density's relative error the confidence predicts once it is added (now: printed first), and the
+fitted cameras and better-ranked candidates it nearly duplicates: ``beside`` one (within 20
+degrees of its line of sight) or its ``mirror`` (facing it: an emission-only camera then sees
+nearly the same line integrals, mirrored). Writes RUN_DIR/camera_plan.json and
+RUN_DIR/renders/camera_plan.png (top view with its world axes: the rig and the ranked
+candidates). ``--noise``: the one-sigma noise of a new camera's pixels (default: the run's
+training residual inside the silhouettes, from its training PSNR there).
 
 ``--check-synthetic``: the synthetic flame (overrides on top, e.g. ``scene.n_cameras=12
 holdout=[...]``): the run's held-out cameras are the candidates; each is added to the fit in
@@ -43,18 +49,20 @@ import torch
 
 import flamerecon as fr
 from flamerecon.evaluate.camera_planning import (
-    azimuths_of,
+    alike,
     orbit_candidates,
-    rig_up,
+    sight_lines,
     total_variance,
     variance_reduction,
+    volume_error,
 )
 from flamerecon.evaluate.uncertainty import spearman
 from flamerecon.fit.ensemble import confidence
 from flamerecon.fit.reconstruct import mean_of, reconstruct
+from flamerecon.geometry.axes import ground_frame, up_vector, world_angles
 from flamerecon.geometry.cameras import camera_centers, camera_subset, make_cameras
 from flamerecon.outputs.atomic import write_json_atomic
-from flamerecon.outputs.camera_plan import camera_plan_figure
+from flamerecon.outputs.camera_plan import axis_name_of, camera_plan_figure
 from flamerecon.outputs.cameras_file import read_camera_file
 from flamerecon.outputs.figures import write_png
 from flamerecon.progress import Progress
@@ -64,6 +72,8 @@ from flamerecon.scenes import load_scene
 
 #: the noise of a new camera's pixels when a run has no training PSNR inside the silhouettes
 DEFAULT_NOISE = 0.01
+#: the most orbit candidates: one a degree (each costs a render of every ensemble member)
+MAX_ORBIT = 360
 
 
 def noise_of(metrics: dict) -> float:
@@ -83,6 +93,7 @@ def plan_run(run_dir: Path, orbit: int, cameras_file: Path | None, noise: float 
     conf = fr.confidence(run)
     noise = noise if noise is not None else noise_of(run.metrics)
     rig = camera_subset(run.scene.cameras, run.train)
+    up = np.asarray(up_vector(run.scene.up))
     centre = conf.grid.lo().double() * 0.5 + conf.grid.hi().double() * 0.5
     if cameras_file is not None:
         records = read_camera_file(cameras_file, "--cameras")["cameras"]
@@ -91,31 +102,54 @@ def plan_run(run_dir: Path, orbit: int, cameras_file: Path | None, noise: float 
         cams = make_cameras(K, w2c, int(rig.height[0]), int(rig.width[0]))
         names = [r.get("name", f"camera{k}") for k, r in enumerate(records)]
     else:
-        cams, _ = orbit_candidates(rig, centre, orbit)
+        cams, _ = orbit_candidates(rig, centre, orbit, up)
         names = [f"orbit{k:02d}" for k in range(orbit)]
-    azimuths = azimuths_of(cams, rig, centre)
+    azimuths, elevations = world_angles(camera_centers(cams).double().numpy() - centre.numpy(), up)
     total = total_variance(conf)
     progress = Progress("camera plan", cams.batch_size, unit="candidate")
     reductions = variance_reduction(conf, cams, noise, rig, lambda b: progress.update(b + 1, names[b]))
     order = ranked(reductions)
-    print(f"{run_dir}: {len(names)} candidates; total variance of the confidence volume {total:.4g}; "
-          f"pixel noise {noise:.4g}")
-    print(f"{'rank':>4} {'camera':<12} {'azimuth':>8} {'removes':>9}")
+    lines = sight_lines(cams, centre.numpy())
+    fitted_names = [run.scene.views[v] for v in run.train]
+    near_fitted = alike(lines, sight_lines(rig, centre.numpy()))
+    near_better = alike(lines, lines)
+    rank_of = {b: rank for rank, b in enumerate(order, 1)}
+    now = volume_error(conf, total)
+    print(f"{run_dir}: {len(names)} candidates, azimuth about {run.scene.up} (0 deg: "
+          f"{axis_text(ground_frame(up)[0])}, 90 deg: {axis_text(ground_frame(up)[1])}); pixel noise {noise:.4g}")
+    print(f"the confidence predicts the density's relative error now at {now:.4f} (total variance {total:.4g})")
+    print(f"{'rank':>4} {'camera':<12} {'azimuth':>8} {'elev.':>6} {'removes':>8} {'error after':>11}  like")
+    rows = []
     for rank, b in enumerate(order, 1):
-        print(f"{rank:4d} {names[b]:<12} {float(azimuths[b]):7.1f}° {100 * float(reductions[b]) / total:8.2f}%")
+        after = volume_error(conf, total - float(reductions[b]))
+        like = [f"{how} {fitted_names[m]}" for m, how in near_fitted[b]]
+        like += [f"{how} {names[m]} (rank {rank_of[m]})" for m, how in near_better[b] if rank_of[m] < rank]
+        print(f"{rank:4d} {names[b]:<12} {azimuths[b]:7.1f}° {elevations[b]:5.1f}° "
+              f"{100 * float(reductions[b]) / total:7.2f}% {after:11.4f}  {', '.join(like) or '-'}")
+        rows.append({"name": names[b], "rank": rank, "azimuth_deg": float(azimuths[b]),
+                     "elevation_deg": float(elevations[b]), "variance_removed": float(reductions[b]),
+                     "share": float(reductions[b]) / total if total > 0 else 0.0, "volume_error_after": after,
+                     "alike": like, "world_to_camera": cams.extrinsics[b].tolist()})
+    distinct = [r for r in rows if not r["alike"]]
+    if distinct and distinct[0]["rank"] != 1:
+        print(f"the best candidate unlike any fitted camera or better candidate: {distinct[0]['name']} "
+              f"(rank {distinct[0]['rank']})")
     centres = camera_centers(cams).numpy()
     fitted = {run.scene.views[v]: camera_centers(camera_subset(run.scene.cameras, [v]))[0].numpy() for v in run.train}
     held = {run.scene.views[v]: camera_centers(camera_subset(run.scene.cameras, [v]))[0].numpy() for v in run.holdout}
     shares = (reductions / total).numpy() if total > 0 else np.zeros(len(names))
-    figure = camera_plan_figure(rig_up(rig).numpy(), conf.grid.corners().numpy(), fitted, held, centres, shares,
+    figure = camera_plan_figure(up, conf.grid.corners().numpy(), fitted, held, centres, shares,
                                 f"next camera for {run_dir.name}: share of the variance removed")
     write_png(run_dir / "renders" / "camera_plan.png", figure)
     write_json_atomic(run_dir / "camera_plan.json", {
-        "noise": noise, "total_variance": total,
-        "candidates": [{"name": names[b], "rank": rank, "azimuth_deg": float(azimuths[b]),
-                        "variance_removed": float(reductions[b]), "share": float(shares[b]),
-                        "world_to_camera": cams.extrinsics[b].tolist()} for rank, b in enumerate(order, 1)]})
+        "noise": noise, "total_variance": total, "up": run.scene.up, "volume_error_now": now,
+        "azimuth_zero": ground_frame(up)[0].tolist(), "candidates": rows})
     print(f"written: {run_dir / 'camera_plan.json'}, {run_dir / 'renders' / 'camera_plan.png'}")
+
+
+def axis_text(direction: np.ndarray) -> str:
+    """A world direction as its axis name where it lies along one (``+z``), else its components."""
+    return axis_name_of(direction) or "(" + ", ".join(f"{v:.2f}" for v in direction) + ")"
 
 
 def check_synthetic(overrides: list[str]) -> None:
@@ -185,7 +219,8 @@ def check_loo(frames: list[int], overrides: list[str]) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, __file__)
     parser.add_argument("target", nargs="*", help="RUN_DIR, or with --check-*: train.py overrides")
-    parser.add_argument("--orbit", type=at_least(3), default=24, help="candidates evenly around the box")
+    parser.add_argument("--orbit", type=at_least(3, MAX_ORBIT), default=24,
+                        help=f"candidates evenly around the box (3 to {MAX_ORBIT}: one a degree)")
     parser.add_argument("--cameras", type=Path, help="a cameras.json whose cameras are the candidates")
     parser.add_argument("--noise", type=float, help="one-sigma noise of a new camera's pixels (image units)")
     parser.add_argument("--check-synthetic", action="store_true", help="check the ranking on the synthetic flame")

@@ -34,7 +34,16 @@ from flamerecon.run.runner import FAILED_FILE, run_task
 from flamerecon.run.summary import summary_table
 from flamerecon.scenes import SceneError, load_scene
 from flamerecon.scenes.frames import read_camera_frame
-from tests.helpers import FAST, REPO, interrupt_at, repo_env, tiny_cfg, tiny_synthetic, tmpfs
+from tests.helpers import (
+    FAST,
+    REPO,
+    interrupt_at,
+    refused_line,
+    repo_env,
+    tiny_cfg,
+    tiny_synthetic,
+    tmpfs,
+)
 from tests.helpers import TINY as TINY_SCENE
 
 TINY = [*TINY_SCENE, *FAST]  # the tiny config with the short solve
@@ -319,6 +328,24 @@ def test_options_are_checked_before_any_work(case, tmp_path, capsys, monkeypatch
     code, line = outcome(capsys, cfg, tmp_path / "run")
     assert code == 2 and re.search(message, line), line
     assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [FAILED_FILE]
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("case", [*OPTIONS, *LEAKS])
+def test_train_py_says_a_refusal_in_one_line_and_nothing_else(case, tmp_path):
+    """The tables above as a user meets them, through ``python train.py``: the one error line
+    is all that is printed (no composed config, no log line before it; issue 38's regression),
+    exit status 2, no run folder left."""
+    if case in OPTIONS:
+        args, message = [*TINY, *OPTIONS[case][0].split()], OPTIONS[case][1]
+    else:
+        make, holdout, message = LEAKS[case]
+        root = make(tmp_path / "capture")
+        args = ["scene=nerf", f"scene.root={root}", "grid.resolution=16", "solver.max_iters=10", "log.eval_every=0",
+                holdout or "holdout=[cam04]"]
+    line = refused_line([*args, f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert re.search(message, line), line
+    assert not (tmp_path / "run").exists()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from flamerecon.outputs.figures import (
     TITLE_PX,
     brightest_index,
     centroid_index,
+    figure_layout,
     framing_distance,
     grid_of,
     heldout_figure,
@@ -222,20 +223,39 @@ def test_hull_masks_and_overlay():
 
 
 def test_the_heldout_figure_has_titles_and_a_colour_bar_for_the_error():
-    rendered = torch.full((3, 40, 50), 0.5)
+    rendered = torch.full((3, 240, 300), 0.5)
     captured = rendered.clone()
     captured[:, 0, 0] = 1.0  # one wrong pixel, error 0.5
     figure = heldout_figure(rendered, captured, "cam03")
-    assert figure.shape == (TITLE_PX + 40, 3 * 50 + BAR_PX + BAR_LABEL_PX, 3) and figure.dtype == np.uint8
-    assert figure[:TITLE_PX, :150].max() > 128  # "rendered cam03", "captured", "|error|" written above
+    assert figure.shape == (TITLE_PX + 240, 3 * 300 + BAR_PX + BAR_LABEL_PX, 3) and figure.dtype == np.uint8
+    assert figure[:TITLE_PX, :900].max() > 128  # "rendered cam03", "captured", "|error|" written above
     panels = figure[TITLE_PX:]
-    assert (panels[5:, :50] == panels[5:, 50:100]).all()
-    error = panels[:, 100:150]
+    assert (panels[5:, :300] == panels[5:, 300:600]).all()
+    error = panels[:, 600:900]
     assert error[0, 0].sum() > error[20, 20].sum()  # the one wrong pixel stands out
-    bar = panels[:, 150:150 + BAR_PX].astype(int).sum(-1)
+    bar = panels[:, 900:900 + BAR_PX].astype(int).sum(-1)
     assert bar[0, 0] > bar[len(bar) // 2, 0] > bar[-1, 0]  # bright (the largest error) at the top
-    np.testing.assert_array_equal(panels[0, 100 + 0], panels[0, 150])  # the bar's top is that error's colour
-    assert figure[TITLE_PX:, 150 + BAR_PX:].max() > 128  # the scale's labels
+    np.testing.assert_array_equal(panels[0, 600 + 0], panels[0, 900])  # the bar's top is that error's colour
+    assert figure[TITLE_PX:, 900 + BAR_PX:].max() > 128  # the scale's labels
+
+
+@pytest.mark.parametrize("height, width", [(96, 96), (48, 64), (1920, 1080)])
+def test_the_heldout_figure_reads_at_any_capture_size(height, width):
+    """A small capture's panels are enlarged by a whole factor to at least 240 px (each pixel a
+    block, its values kept); a full-resolution one keeps its size and its titles grow with it."""
+    rendered = torch.rand(1, height, width)
+    figure = heldout_figure(rendered, rendered, "cam12", 31.5, 20.1)
+    layout = figure_layout(height, width)
+    H, W = height * layout.scale, width * layout.scale
+    assert H >= 240 and (layout.scale == 1 or (height * (layout.scale - 1) < 240))
+    assert figure.shape[1] == 3 * W + layout.bar_px + layout.bar_label_px
+    strip = figure.shape[0] - H
+    assert strip in (layout.title_px, 2 * layout.title_px) and layout.title_px >= TITLE_PX * H / 240 - 1
+    shown = figure[strip:, :W, 0].astype(float)
+    expected = np.repeat(np.repeat((rendered[0].numpy() * 255 + 0.5).astype(np.uint8), layout.scale, 0), layout.scale, 1)
+    np.testing.assert_array_equal(shown, expected)
+    lit = (figure[:strip, :W] > 128).any(-1)
+    assert lit.any(1).sum() >= 0.3 * layout.title_px  # the title's letters are as tall as the strip allows
 
 
 def test_slices_pass_through_the_centre_of_mass_upright():

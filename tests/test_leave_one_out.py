@@ -8,7 +8,7 @@ import runpy
 
 import pytest
 
-from flamerecon.run.leave_one_out import leave_one_out
+from flamerecon.run.leave_one_out import leave_one_out, loo_table
 from flamerecon.run.pipeline import reconstruct
 from flamerecon.scenes import SceneError
 from tests.helpers import REPO, TINY, tiny_config
@@ -44,3 +44,21 @@ def test_a_fold_matches_the_train_run_with_that_holdout_and_excluded_views_stay_
     assert row["psnr_silhouette"] == pytest.approx(run["heldout"]["cam01"]["psnr_silhouette"], abs=1e-4)
     with pytest.raises(SceneError, match="cam09"):
         leave_one_out(cfg, tmp_path / "bad", exclude=["cam09"])
+
+
+@pytest.mark.slow
+def test_a_camera_fit_that_finds_nothing_runs_once_for_the_capture_not_once_per_fold(tmp_path, monkeypatch):
+    """Strict leave-one-out fits each fold's cameras without its held-out one; but the fit of
+    every camera runs first, and where it found nothing to correct (exact synthetic cameras)
+    no fold fits again: one camera fit for the capture, and the table says why."""
+    from flamerecon.fit import reconstruct as reconstruction
+
+    fits = []
+    real = reconstruction.refine
+    monkeypatch.setattr(reconstruction, "refine", lambda *a, **k: fits.append(1) or real(*a, **k))
+    cfg = tiny_config("log.eval_every=0", "grid.resolution=32", "solver.max_iters=100", "calibration.refine=pose",
+                      "calibration.rounds=2", "calibration.iterations=2")
+    record = leave_one_out(cfg, tmp_path / "loo")
+    assert len(fits) == 1 and len(record["views"]) == 5
+    assert "found nothing to correct" in record["calibration"] and "every fold keeps" in record["calibration"]
+    assert "cameras: the camera fit of all 5 cameras found nothing" in loo_table(record)

@@ -64,6 +64,24 @@ def test_a_sweeps_table_sets_its_jobs_side_by_side(tmp_path):
     assert sweep_table(tmp_path).splitlines()[0] == f"{tmp_path}: 3 jobs, differing in solver.l1_rel"
 
 
+def test_a_sweep_of_runs_fitting_every_camera_shows_their_leave_one_out_mean(tmp_path):
+    """leave_one_out=true with no held-out camera: the table's held-out cells stay empty and a
+    leave-one-out column (the mean over the cameras left out in turn) tells the jobs apart; a
+    sweep without it has no such column."""
+    from flamerecon.outputs.sweep import sweep_rows, sweep_table
+
+    for job, l1, loo in (("0", "1e-3", 30.0), ("1", "1e-2", 31.5)):
+        fake_job(tmp_path / job, [f"solver.l1_rel={l1}", "holdout=[]", "leave_one_out=true"], {
+            "heldout": {}, "train": {"a": {"psnr": 40.0}}, "solver": {"iterations": 10, "seconds": 1.0},
+            "leave_one_out": {"mean": {"psnr": loo}, "views": {"a": {"psnr": loo - 1}, "b": {"psnr": loo + 1}}}})
+    _, rows = sweep_rows(tmp_path)
+    assert [r["leave-one-out PSNR dB"] for r in rows] == ["30.00", "31.50"] and rows[0]["heldout PSNR dB"] == ""
+    assert "leave-one-out PSNR dB" in sweep_table(tmp_path).splitlines()[1]
+    other = tmp_path / "plain"
+    fake_job(other / "0", ["solver.l1_rel=0"], {"heldout": {"a": {"psnr": 30.0}}})
+    assert "leave-one-out" not in sweep_table(other)
+
+
 @pytest.mark.e2e
 def test_assemble_compares_a_sweep_over_settings(tmp_path):
     for job, l1 in (("0", "0"), ("1", "1e-3")):

@@ -84,13 +84,14 @@ def test_a_later_frame_reads_the_capture_s_cameras_and_weights(capture, tmp_path
 
 def test_auto_calibration_frames_are_spread_over_the_capture(tmp_path):
     from flamerecon.fit.refine_cameras import auto_frames
-    from flamerecon.scenes.frames import source_length
+    from flamerecon.scenes.frames import source_frames
 
-    assert auto_frames(75) == (30, 69) and auto_frames(1) == (0,) and auto_frames(2) == (0, 1)
+    assert auto_frames(range(75)) == (30, 69) and auto_frames([0]) == (0,) and auto_frames([0, 1]) == (0, 1)
+    assert auto_frames([50, 51, 53]) == (51, 53)  # frame numbers, not positions (issue 38)
     folder = tmp_path / "cam0"
     folder.mkdir()
     for t in range(12):
         (folder / f"{t:06d}.png").write_bytes(b"")
     (folder / "notes.txt").write_text("not a frame")
-    assert source_length(folder / "000003.png") == 12
-    assert source_length(tmp_path / "single.png") == 1
+    assert source_frames(folder / "000003.png") == list(range(12))
+    assert source_frames(tmp_path / "single.png") is None

@@ -15,7 +15,7 @@ import pytest
 from tensorboard.backend.event_processing import event_accumulator as ea
 
 from flamerecon.operators.projector import MatrixFreeOperator
-from flamerecon.outputs.figures import BAR_LABEL_PX, BAR_PX, TITLE_PX
+from flamerecon.outputs.figures import figure_layout
 from flamerecon.run.pipeline import evaluate, reconstruct
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.synthetic import ring_cameras
@@ -116,12 +116,15 @@ def test_renders_show_each_heldout_view_rendered_captured_and_error(composed_run
     run_dir, _ = composed_run
     assert sorted(p.name for p in (run_dir / "renders").iterdir()) == ["cam04.png"]
     figure = cv2.imread(str(run_dir / "renders" / "cam04.png"))
-    # titles above (two lines: the 48-px panel is too narrow for the scores beside the name), a colour bar right
-    strip = 2 * TITLE_PX
-    assert figure.shape == (strip + 36, 3 * 48 + BAR_PX + BAR_LABEL_PX, 3)
-    assert figure[:TITLE_PX, :3 * 48].max() > 128 and figure[TITLE_PX:strip, :48].max() > 128  # the titles are written
+    # the 48 x 36 panels enlarged to read (at least 240 px tall), titles above, a colour bar right
+    layout = figure_layout(36, 48)
+    H, W = 36 * layout.scale, 48 * layout.scale
+    assert layout.scale == 7 and figure.shape[1] == 3 * W + layout.bar_px + layout.bar_label_px
+    strip = figure.shape[0] - H
+    assert strip in (layout.title_px, 2 * layout.title_px)
+    assert figure[:layout.title_px, :3 * W].max() > 128  # the titles are written
     panel = figure[strip:]
-    rendered, captured = (panel[:, 48 * i:48 * (i + 1)].astype(float) for i in range(2))
+    rendered, captured = (panel[:, W * i:W * (i + 1)].astype(float) for i in range(2))
     flame = captured.max(-1) > 60
     assert flame.sum() > 20  # the flame is there
     assert np.abs(rendered - captured)[flame].mean() < 0.2 * captured[flame].mean()
@@ -142,7 +145,9 @@ def test_tensorboard_reader_finds_scalars_and_images(composed_run):
     assert [e.step for e in psnr][:3] == [10, 20, 30]  # every log.eval_every iterations
     assert psnr[-1].value == pytest.approx(metrics["heldout"]["cam04"]["psnr"], abs=1e-4)
     image = acc.Images("heldout/cam04")[-1]
-    assert (image.width, image.height) == (3 * 48 + BAR_PX + BAR_LABEL_PX, TITLE_PX + 36)
+    layout = figure_layout(36, 48)
+    assert image.width == 3 * 48 * layout.scale + layout.bar_px + layout.bar_label_px
+    assert image.height in (36 * layout.scale + layout.title_px, 36 * layout.scale + 2 * layout.title_px)
     assert len(acc.Images("density/top_view")) >= 3  # the top view over iterations
 
 

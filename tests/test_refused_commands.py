@@ -1,5 +1,6 @@
-"""A command refused before any work says why in one line on stderr, exits with status 2 and
-leaves no folder behind: no run folder under outputs/, no sweep folder under multirun/.
+"""A command refused before any work says why in one line on stderr, prints nothing else (the
+composed config comes only once the checks have passed), exits with status 2 and leaves no
+folder behind: no run folder under outputs/, no sweep folder under multirun/.
 
 Hydra's own refusals become flamerecon's: a misspelt key or config-group option gets the
 closest one ("did you mean"), a launcher of the missing ``[sweep]`` extra the pip command."""
@@ -35,6 +36,19 @@ REFUSED = {
     "option out of range": (["solver.l1=-1"], False, r"solver\.l1: got -1; solver\.l1 must be >= 0"),
     "unknown held-out view": ([*TINY, *SMALLER, *FAST, "holdout=[cam99]"], False, r"holdout: unknown view 'cam99'"),
     "missing data folder": (["scene=scalarflow", "scene.root=/nonexistent"], False, r"/nonexistent/info\.json: .*not found"),
+    # found once the scene is loaded, still before any work: no config, no log line before it (issue 38)
+    "unknown held-out view, the default scene": (["holdout=[no_such_camera]"], False,
+                                                 r"holdout: unknown view 'no_such_camera'; scene 'synthetic' has views"),
+    "held-out view index out of range": ([*TINY, *SMALLER, "holdout=[7]"], False, r"holdout: view index 7 is out of range"),
+    "every view held out": ([*TINY, *SMALLER, "holdout=[0,1,2,3,4]"], False, r"holds out every view"),
+    "silhouette threshold above every pixel": ([*TINY, *SMALLER, "silhouette.threshold=0.99"], False,
+                                               r"silhouette\.threshold=0\.99 is above every pixel of view 'cam00'"),
+    "confidence with one training camera": ([*TINY, *SMALLER, "holdout=[1,2,3,4]", "uncertainty.enabled=true"], False,
+                                            r"uncertainty\.enabled: the confidence needs at least two training cameras"),
+    "a calibration file that is not there": ([*TINY, *SMALLER, "calibration.file=/nonexistent/cameras.json"], False,
+                                             r"calibration\.file: /nonexistent/cameras\.json does not exist"),
+    "a box no camera sees": ([*TINY, *SMALLER, "grid.bbox=[[100,100,100],[101,101,101]]"], False,
+                             r"view 'cam00': the camera does not see the box"),
 }
 
 
@@ -50,7 +64,7 @@ def test_a_refused_command_says_why_in_one_line_and_leaves_no_folder(case, tmp_p
     proc = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, env=repo_env(),
                           timeout=300, check=False)
     assert proc.returncode == 2, proc.stderr
-    assert len(proc.stderr.splitlines()) == 1, proc.stderr
+    assert proc.stdout == "" and len(proc.stderr.splitlines()) == 1, proc.stdout + proc.stderr  # nothing else printed
     assert proc.stderr.startswith("flamerecon: error: ")
     assert re.search(line, proc.stderr), proc.stderr
     assert list(tmp_path.iterdir()) == []  # no outputs/<date>/<time>, no multirun/<date>/<time>

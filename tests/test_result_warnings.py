@@ -24,6 +24,7 @@ from flamerecon.evaluate.result_warnings import (
     near_empty,
     result_warnings,
     setup_warnings,
+    view_warnings,
 )
 from flamerecon.evaluate.scores import score
 from flamerecon.geometry.cameras import K_of, look_at, make_cameras
@@ -208,7 +209,10 @@ SETUP = {  # case: (step, grid cells, volume scores, calibration, training views
     "a step past one voxel": (1.5, (16, 24, 16), None, None, TRAIN4, {"coarse_step"}),
     "a step larger than the grid": (40.0, (16, 24, 16), None, None, TRAIN4, {"coarse_step"}),
     "a 2x3x2 grid with IoU 1 and L2 1.09": ((0.5), (2, 3, 2), {"iou": 1.0, "rel_l2": 1.09}, None, TRAIN4,
-                                             {"tiny_grid", "no_closer_than_zero"}),
+                                             {"coarse_grid", "tiny_grid", "no_closer_than_zero"}),
+    "a 1x1x1 grid (a capture: no volume scores)": (0.5, (1, 1, 1), None, None, TRAIN4, {"coarse_grid"}),
+    "a 3-cell axis": (0.5, (3, 12, 8), None, None, TRAIN4, {"coarse_grid"}),
+    "4 cells along the shortest axis": (0.5, (4, 12, 8), None, None, TRAIN4, set()),
     "an 8-cell grid": (0.5, (8, 12, 8), {"iou": 0.8, "rel_l2": 0.3}, None, TRAIN4, set()),
     "a 7-cell grid": (0.5, (7, 10, 7), {"iou": 0.8, "rel_l2": 0.3}, None, TRAIN4, {"tiny_grid"}),
     "relative L2 just below 1": (0.5, (16, 24, 16), {"iou": 0.1, "rel_l2": 0.99}, None, TRAIN4, set()),
@@ -224,6 +228,40 @@ def test_a_degenerate_setup_gets_its_warning(case):
     metrics = {k: v for k, v in (("volume", volume), ("calibration", calibration)) if v is not None}
     found = {w["code"]: w["message"] for w in setup_warnings(train, step, cells, metrics)}
     assert set(found) == expected, found
+
+
+def fov_of_voxels(voxels: float):
+    """The tiny scene with camera 1's focal lengths set so that its whole image spans ``voxels``
+    voxels of a 16-cell grid at the box centre."""
+    def make(scene):
+        lo, hi = torch.tensor(scene.bbox_min, dtype=torch.float64), torch.tensor(scene.bbox_max, dtype=torch.float64)
+        voxel = float((hi - lo).max() / 16)
+        depth = float((scene.cameras.extrinsics[1].double() @ torch.cat([(lo + hi) / 2, torch.ones(1).double()]))[2])
+        H, W = scene.image_size
+        f = max(W, H) * depth / (voxels * voxel)  # the longer side spans `voxels` voxels
+        return posed(K={1: {(0, 0): f, (1, 1): f}})(scene)
+    return make
+
+
+VIEWS_FOV = {  # case: (scene change, {codes})
+    "the tiny rig": (as_is, set()),
+    "a view spanning 0.9 voxel": (fov_of_voxels(0.9), {"narrow_view"}),
+    "a view spanning 1.1 voxels": (fov_of_voxels(1.1), set()),
+    "a view spanning 0.01 voxel (a focal length in the wrong units)": (fov_of_voxels(0.01), {"narrow_view"}),
+}
+
+
+@pytest.mark.parametrize("case", list(VIEWS_FOV))
+def test_a_view_narrower_than_a_voxel_gets_its_warning(case):
+    change, expected = VIEWS_FOV[case]
+    scene = change(tiny_synthetic())
+    cells = tuple(int(n) for n in (torch.tensor(scene.bbox_max) - torch.tensor(scene.bbox_min)).div(
+        max(b - a for a, b in zip(scene.bbox_min, scene.bbox_max)) / 16).round().tolist())
+    found = {w["code"]: w["message"] for w in view_warnings(scene, list(range(5)), (scene.bbox_min, scene.bbox_max),
+                                                             cells)}
+    assert set(found) == expected, found
+    if expected:
+        assert re.search(r"view 'cam01': its whole image spans .* less than one voxel", found["narrow_view"])
 
 
 @pytest.mark.parametrize("gain, warned", [(0.16, True), (0.99, True), (1.0, False), (12.0, False), (-3.0, False)])
@@ -253,3 +291,10 @@ def test_a_run_reports_its_geometry_warnings(tmp_path, capsys):
     codes = {w["code"] for w in metrics["warnings"]}
     assert {"one_camera", "tiny_grid"} <= codes, codes
     assert "! one_camera: 1 training camera" in out
+
+
+def test_a_one_cell_grid_ends_with_a_warning_in_the_summary_and_metrics(tmp_path, capsys):
+    code, out, metrics = cli(tmp_path, capsys, "grid.resolution=1")
+    assert code == 0
+    assert "coarse_grid" in {w["code"] for w in metrics["warnings"]}
+    assert re.search(r"! coarse_grid: a 1x1x1-cell grid: fewer than 4 cells", out), out

@@ -152,7 +152,9 @@ CALLS = {
     "motion_eval": (lambda t, run, dump: [*SYNTHETIC, "--frames", "1", "--windows", "1,3", "--decay", "1",
                                           "--static"], r"mean +3 density s=0.01 decay=1 .*\n.*static"),
     "operator_memory": (lambda t, run, dump: ["--grid", "8", *SYNTHETIC], r"operator: \d+ rays .* nonzeros \(estimate"),
-    "plan_cameras": (lambda t, run, dump: [str(copied(run, t)), "--orbit", "6"], r"rank camera .*\n +1 orbit0\d "),
+    "plan_cameras": (lambda t, run, dump: [str(copied(run, t)), "--orbit", "6"],
+                     (r"azimuth about \+y \(0 deg: \+z, 90 deg: \+x\).*\n.*relative error now at [0-9.]+.*\n"
+                      r"rank camera .*\n +1 orbit0\d +[0-9.]+° +-?[0-9.]+° +[0-9.]+% +[0-9.]+ ")),
     "preconditioning_study": (lambda t, run, dump: ["--grid", "8", "--iters", "20", "--variants", "lipschitz",
                                                     "--dump", str(dump)], r"lipschitz +"),
     "refine_cameras": (lambda t, run, dump: [*SYNTHETIC, "calibration.rounds=1", "--modes", "pose",
@@ -277,6 +279,7 @@ BAD = [
     ("plan_cameras", [], r"give one RUN_DIR"),
     ("plan_cameras", ["--check-loo"], r"--check-loo needs --frames"),
     ("plan_cameras", ["RUN", "--noise", "-1"], r"--noise: got -1.0; give a number > 0"),
+    ("plan_cameras", ["RUN", "--orbit", "100000000"], r"--orbit: .*give an integer from 3 to 360"),
 ]
 
 

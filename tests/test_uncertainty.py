@@ -17,7 +17,6 @@ import torch
 import flamerecon as fr
 from flamerecon.errors import ArgumentError, ArgumentTypeError, ConfigError
 from flamerecon.evaluate.camera_planning import (
-    azimuths_of,
     orbit_candidates,
     total_variance,
     variance_reduction,
@@ -35,7 +34,8 @@ from flamerecon.evaluate.uncertainty import (
     spearman,
 )
 from flamerecon.fit.ensemble import solve_ensemble, weight_variants
-from flamerecon.geometry.cameras import camera_subset
+from flamerecon.geometry.axes import up_vector, world_angles
+from flamerecon.geometry.cameras import camera_centers, camera_subset
 from flamerecon.run.pipeline import reconstruct
 from tests.helpers import HELDOUT, TRAIN, CliRun, tiny_config
 
@@ -197,9 +197,11 @@ def test_a_bad_uncertainty_option_on_the_command_line_is_named():
 def test_a_camera_beside_a_fitted_one_adds_less_than_one_in_the_gap(rec, conf):
     fitted = camera_subset(rec.scene.cameras, rec.setup.train)
     centre = 0.5 * (rec.grid.lo().double() + rec.grid.hi().double())
-    cams, azimuths = orbit_candidates(fitted, centre, 12)
-    apart = (azimuths_of(cams, fitted, centre) - azimuths + 180) % 360 - 180
-    assert float(apart.abs().max()) < 1e-3
+    up = np.asarray(up_vector(rec.scene.up))
+    cams, azimuths = orbit_candidates(fitted, centre, 12, up)
+    found, _ = world_angles(camera_centers(cams).double().numpy() - centre.numpy(), up)
+    apart = (found - azimuths.numpy() + 180) % 360 - 180
+    assert float(np.abs(apart).max()) < 1e-3  # world azimuths about the scene's up (0: +z, 90: +x for +y up)
     gained = variance_reduction(conf, cams, 0.01, fitted)
     assert bool((gained >= -1e-9).all()) and float(gained.max()) <= total_variance(conf)
     # the candidate at a fitted camera's place (azimuth 0: the first fitted camera's) against the best
@@ -231,3 +233,17 @@ def test_frames_solved_jointly_refuse_the_confidence_before_any_work(tmp_path):
     with pytest.raises(ConfigError, match=r"^uncertainty.enabled: .*scene.frames"):
         reconstruct(tiny_config("scene.frames=[0,1]", "uncertainty.enabled=true"), tmp_path / "run")
     assert not (tmp_path / "run" / "density.npz").exists()
+
+
+def test_cameras_facing_each_other_or_side_by_side_are_named_alike():
+    """Emission-only images are line integrals: a camera facing another (its mirror) sees nearly
+    the same lines, as does one beside it; cameras a right angle apart are unlike."""
+    from flamerecon.evaluate.camera_planning import alike
+
+    def line(azimuth, elevation):
+        a, e = math.radians(azimuth), math.radians(elevation)
+        return [math.cos(e) * math.cos(a), math.sin(e), math.cos(e) * math.sin(a)]
+
+    lines = np.array([line(0, 5), line(180, 5), line(10, 0), line(90, 5), line(190, -5)])
+    found = alike(lines, lines[:1])
+    assert found == [[(0, "beside")], [(0, "mirror")], [(0, "beside")], [], [(0, "mirror")]]

@@ -189,7 +189,7 @@ def test_a_run_whose_scene_knows_its_unit_exports_a_vdb_in_metres(tmp_path):
 
     reconstruct(tiny_cfg("export=vdb", "++scene.unit=0.0005"), tmp_path)
     saved = load_density(tmp_path)
-    C, nz, ny, nx = saved.density.shape
+    nz, ny, nx = saved.density.shape[1:]
     grid = read_with_openvdb(tmp_path / "density.vdb", (nx, ny, nz))["density"]
     size = voxel_size(saved.bbox_min, saved.bbox_max, saved.density.shape)
     np.testing.assert_allclose(grid["voxel"], size * 0.0005, rtol=1e-9)

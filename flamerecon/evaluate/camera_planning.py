@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.evaluate.uncertainty import Confidence
+from flamerecon.geometry.axes import ground_frame
 from flamerecon.geometry.cameras import (
     camera_centers,
     camera_subset,
@@ -34,6 +36,10 @@ from flamerecon.geometry.cameras import (
     project_points,
 )
 from flamerecon.operators.projector import render_image
+
+#: two cameras whose sight lines through the box centre lie within this angle (degrees) of each
+#: other, or of opposite directions, see nearly the same line integrals (:func:`alike`)
+MIRROR_DEG = 20.0
 
 
 def weighted_deviations(conf: Confidence) -> list[torch.Tensor]:
@@ -120,27 +126,17 @@ def rank_cameras(conf: Confidence, cams: PinholeCamera, noise: float) -> list[tu
     return sorted(((b, float(r)) for b, r in enumerate(found)), key=lambda t: -t[1])
 
 
-def rig_up(cams: PinholeCamera) -> torch.Tensor:
-    """(3,) float64: the world direction the rig's images show upwards (the mean of the cameras'
-    negative y axes, OpenCV), unit length."""
-    up = -cams.extrinsics[:, 1, :3].double().sum(0)
-    return up / up.norm().clamp_min(1e-12)
-
-
-def orbit_candidates(rig: PinholeCamera, target, count: int) -> tuple[PinholeCamera, torch.Tensor]:
-    """``count`` candidate cameras evenly around ``target`` (3,) world, at the rig's mean
-    distance from it and mean elevation above the plane across :func:`rig_up`, looking at it,
-    with the first camera's intrinsics and image size: (cameras, azimuths (count,) degrees,
-    measured from the first rig camera's direction towards the second's side)."""
+def orbit_candidates(rig: PinholeCamera, target, count: int, up) -> tuple[PinholeCamera, torch.Tensor]:
+    """``count`` candidate cameras evenly around ``target`` (3,) world, at world azimuths 0,
+    360/count, ... about the scene's ``up`` (3,) (:func:`~flamerecon.geometry.axes.ground_frame`),
+    at the rig's mean distance from ``target`` and mean elevation, looking at it, with the first
+    camera's intrinsics and image size: (cameras, azimuths (count,) degrees)."""
     target = torch.as_tensor(target, dtype=torch.float64).reshape(3)
-    up = rig_up(rig)
+    up = torch.as_tensor(np.asarray(up, np.float64))
     offsets = camera_centers(rig).double() - target
     distance = float(offsets.norm(dim=-1).mean())
-    height = offsets @ up
-    elevation = float(torch.asin((height / offsets.norm(dim=-1)).clamp(-1, 1)).mean())
-    flat = offsets - height[:, None] * up
-    first = flat[0] / flat[0].norm().clamp_min(1e-12)
-    second = torch.linalg.cross(up, first)
+    elevation = float(torch.asin(((offsets @ up) / offsets.norm(dim=-1)).clamp(-1, 1)).mean())
+    first, second = (torch.as_tensor(v) for v in ground_frame(up.numpy()))
     azimuths = torch.arange(count, dtype=torch.float64) * 360.0 / count
     a = torch.deg2rad(azimuths)
     eyes = target + distance * (math.cos(elevation) * (torch.cos(a)[:, None] * first + torch.sin(a)[:, None] * second)
@@ -150,14 +146,25 @@ def orbit_candidates(rig: PinholeCamera, target, count: int) -> tuple[PinholeCam
     return make_cameras(K, w2c, int(rig.height[0]), int(rig.width[0])), azimuths
 
 
-def azimuths_of(cams: PinholeCamera, rig: PinholeCamera, target) -> torch.Tensor:
-    """(B,) degrees in [0, 360): where ``cams`` stand around ``target`` in the frame of
-    :func:`orbit_candidates` (0: the first rig camera's direction)."""
-    target = torch.as_tensor(target, dtype=torch.float64).reshape(3)
-    up = rig_up(rig)
-    ref = camera_centers(rig)[0].double() - target
-    first = ref - (ref @ up) * up
-    first = first / first.norm().clamp_min(1e-12)
-    second = torch.linalg.cross(up, first)
-    offsets = camera_centers(cams).double() - target
-    return torch.rad2deg(torch.atan2(offsets @ second, offsets @ first)) % 360.0
+def sight_lines(cams: PinholeCamera, target) -> np.ndarray:
+    """(B, 3) unit directions from each camera's centre to ``target`` (3,)."""
+    d = np.asarray(target, np.float64).reshape(1, 3) - camera_centers(cams).double().cpu().numpy()
+    return d / np.linalg.norm(d, axis=1, keepdims=True).clip(1e-12)
+
+
+def alike(lines: np.ndarray, others: np.ndarray, degrees: float = MIRROR_DEG) -> list[list[tuple[int, str]]]:
+    """For each sight line of ``lines`` (N, 3), the indices of ``others`` (M, 3) within
+    ``degrees`` of it, each with how: ``beside`` (the same direction) or ``mirror`` (the opposite
+    one: emission-only images are line integrals, so a camera facing another sees nearly its
+    image mirrored, and adds nearly nothing to it)."""
+    cos = np.asarray(lines) @ np.asarray(others).T
+    limit = math.cos(math.radians(degrees))
+    return [[(m, "beside" if c > 0 else "mirror") for m, c in enumerate(row) if abs(c) >= limit] for row in cos]
+
+
+def volume_error(conf: Confidence, variance: float) -> float:
+    """The relative L2 error of the density that a confidence of total ``variance`` (density
+    units squared) predicts: sqrt(variance) / |density| (NaN for an empty density)."""
+    norm = float(conf.x.double().pow(2).sum())
+    return math.sqrt(max(variance, 0.0) / norm) if norm > 0 else math.nan
+

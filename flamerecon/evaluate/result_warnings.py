@@ -3,8 +3,9 @@ non-finite density, saturated views, float images outside [0, 1], an all-black h
 held-out PSNR below the all-black floor; a geometry that cannot constrain the density (one
 training camera, cameras at one pose or on one axis or inside the box, two poses alike with
 different images, a held-out camera at a training camera's pose, an absurd skew or principal
-point, a ray step that skips cells); volume scores that say nothing (a tiny grid, a density no
-closer to the truth than zero); a camera fit that could fit nothing. Each warning is
+point, a view narrower than a voxel, a ray step that skips cells, a grid too coarse to hold a
+shape); volume scores that say nothing (a tiny grid, a density no closer to the truth than
+zero); a camera fit that could fit nothing. Each warning is
 ``{"code", "message"}``; the message names the setting to change. Each rule's threshold is a
 constant here (``tests/test_result_warnings.py`` tries both sides of it). The run (metrics.json's
 ``warnings``, the log, the summary's block), ``scripts/evaluate.py`` and ``fr.score`` all take
@@ -55,6 +56,11 @@ MAX_STEP_VOXELS = 1.0
 MIN_GRID_CELLS = 8
 #: a density at least this far from the truth (relative L2) is no closer to it than zero is
 NO_CLOSER_THAN_ZERO = 1.0
+#: a grid with fewer cells than this along an axis holds no shape along it (1x1x1: one value)
+MIN_SHAPE_CELLS = 4
+#: a view whose whole image spans less than this many voxels at the box centre (its field of
+#: view narrower than a voxel) sees one value of the density, nothing of its shape
+MIN_VIEW_VOXELS = 1.0
 
 
 def warning(code: str, message: str) -> dict[str, str]:
@@ -213,6 +219,29 @@ def camera_geometry(scene, train: list[int], holdout: list[int], bbox: tuple | N
     return out
 
 
+def view_warnings(scene, views: list[int], bbox: tuple, grid_cells: tuple[int, ...]) -> list[dict]:
+    """Views whose whole image spans less than :data:`MIN_VIEW_VOXELS` voxels at the box centre
+    (``bbox``, cut into ``grid_cells`` (nx, ny, nz)): their pixels all fall on one voxel or so."""
+    lo, hi = (torch.tensor(b, dtype=torch.float64) for b in bbox)
+    voxel = float(((hi - lo) / torch.tensor(grid_cells, dtype=torch.float64)).max())
+    centre = torch.cat([(lo + hi) / 2, torch.ones(1, dtype=torch.float64)])
+    K = K_of(scene.cameras).double()
+    H, W = scene.image_size
+    out = []
+    for v in views:
+        depth = float((scene.cameras.extrinsics[v].double() @ centre)[2])
+        if depth <= 0:  # the box centre behind it: check_scene's concern
+            continue
+        span = max(W / float(K[v, 0, 0]), H / float(K[v, 1, 1])) * depth
+        if span < MIN_VIEW_VOXELS * voxel:
+            out.append(warning("narrow_view", (
+                f"view '{scene.views[v]}': its whole image spans {span:.3g} world units at the box centre, less than "
+                f"one voxel ({voxel:.3g}): its field of view is too narrow to see the density's shape (focal "
+                f"lengths {float(K[v, 0, 0]):.4g}, {float(K[v, 1, 1]):.4g} px for a {W}x{H} image); check its K "
+                "(in pixels of this image, rescaled with scene.downscale?), or hold the view out")))
+    return out
+
+
 def _spread(eyes: torch.Tensor, centre: torch.Tensor) -> float:
     """The largest distance between two of ``eyes`` (K, 3) over their mean distance to ``centre``."""
     if eyes.shape[0] < 2:
@@ -243,7 +272,8 @@ def _image_difference(scene, i: int, j: int) -> float:
 
 def setup_warnings(train: list[int], step: float | None, grid_cells: tuple[int, ...] | None,
                    metrics: dict) -> list[dict]:
-    """A ray step that skips cells (:data:`MAX_STEP_VOXELS`), volume scores of a tiny grid
+    """A ray step that skips cells (:data:`MAX_STEP_VOXELS`), a grid too coarse to hold a shape
+    (:data:`MIN_SHAPE_CELLS`), volume scores of a tiny grid
     (:data:`MIN_GRID_CELLS`) or of a density no closer to the truth than zero, and a camera fit
     that had one training camera (its zero-mean gauge leaves nothing to fit)."""
     out = []
@@ -252,6 +282,12 @@ def setup_warnings(train: list[int], step: float | None, grid_cells: tuple[int, 
             f"projector.step={step:g} voxels: each ray samples every {step:g} cells and skips the density between, "
             "so the fit and its scores miss it; use projector.step=0.5 (the default) to 1")))
     volume = metrics.get("volume")
+    if grid_cells is not None and min(grid_cells) < MIN_SHAPE_CELLS:
+        cells = "x".join(map(str, grid_cells))
+        out.append(warning("coarse_grid", (
+            f"a {cells}-cell grid: fewer than {MIN_SHAPE_CELLS} cells along an axis hold no shape along it (1x1x1 is "
+            "one value for the whole box), so the density and its renders say little of the flame; use "
+            "grid.resolution >= 32 (the presets use 64-128)")))
     if volume and grid_cells is not None and min(grid_cells) < MIN_GRID_CELLS:
         out.append(warning("tiny_grid", (
             f"a {'x'.join(map(str, grid_cells))}-cell grid: its support fills the box, so the support IoU "
@@ -275,14 +311,18 @@ def result_warnings(scene, volume: torch.Tensor, metrics: dict, views: list[int]
     """Every warning about a density scored in ``metrics``: :func:`image_warnings` of ``views``
     (the scored ones), :func:`score_warnings`, :func:`empty_density` (``l1``, ``l1_rel``: the
     weights it was solved with), and given ``train`` (the training views among ``views``, the
-    rest held out), :func:`camera_geometry` (``bbox``: the grid's box) and
-    :func:`setup_warnings` (``step``: projector.step)."""
+    rest held out), :func:`camera_geometry` (``bbox``: the grid's box), :func:`view_warnings`
+    and :func:`setup_warnings` (``step``: projector.step)."""
     out = (image_warnings(scene, views) + score_warnings(metrics["heldout"])
            + empty_density(volume, metrics["train"], l1, l1_rel))
     if train is not None:
         holdout = [v for v in views if v not in train]
+        cells = tuple(volume.shape[1:][::-1])
         out += camera_geometry(scene, train, holdout, bbox)
-        out += setup_warnings(train, step, tuple(volume.shape[1:][::-1]), metrics)
+        out += view_warnings(scene, views, bbox or (scene.bbox_min, scene.bbox_max), cells)
+        out += setup_warnings(train, step, cells, metrics)
+    if any(w["code"] == "empty_density" for w in out):  # an empty density is no closer than zero: said once
+        out = [w for w in out if w["code"] != "no_closer_than_zero"]
     return out
 
 

@@ -33,7 +33,7 @@ from flamerecon import solvers
 from flamerecon.errors import ConfigError
 from flamerecon.fit import build, debias, refine_cameras, weight_selection
 from flamerecon.fit.options import ReconstructionOptions
-from flamerecon.fit.refine_cameras import CalibrationFrame, refine, with_cameras
+from flamerecon.fit.refine_cameras import CalibrationFrame, found_nothing, refine, with_cameras
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators import projector
@@ -67,15 +67,19 @@ class CaptureCalibration:
 
 
 def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
-                       device: torch.device, frame_of: Callable[[Scene], CalibrationFrame],
-                       choose: Callable[[PinholeCamera, list[Scene]], dict | None] | None = None
+                       device: torch.device, frame_of: Callable[[Scene, dict | None], CalibrationFrame],
+                       choose: Callable[[PinholeCamera, list[Scene], str], dict | None] | None = None
                        ) -> CaptureCalibration:
     """The training cameras ``train`` of ``scene`` refined over the frames
     ``options.calibration.frames`` of its capture (each loaded as :func:`load_frame` does and
-    turned into a :class:`CalibrationFrame` by ``frame_of``), read from the capture's
-    calibration file when it exists, else fitted and written there. ``choose(cameras, frames)``:
-    the selection record of the capture's solver weights, chosen on those frames with the
-    fitted cameras (None: none), kept in the file for every later frame."""
+    turned into a :class:`CalibrationFrame` by ``frame_of(frame, weights)``), read from the
+    capture's calibration file when it exists, else fitted and written there.
+    ``choose(cameras, frames, which)``: the selection record of the capture's solver weights,
+    chosen on those frames (None: none), first with the capture's own cameras (the weights of
+    the fit's densities), then, where the fit corrected the cameras, again with the fitted ones;
+    kept in the file for every later frame. A fit that found nothing to correct
+    (:func:`~flamerecon.fit.refine_cameras.found_nothing`) keeps the first choice: the cameras
+    it was made with stand."""
     frames = [load_frame(scene, t) for t in options.calibration.frames]  # refuses a scene without config
     images = {f"frame{t}": f.images[train] for t, f in zip(options.calibration.frames, frames)}
     key = entry_key("calibration", calibration_key(scene, train, grid, options, device, images),
@@ -86,9 +90,12 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
     if stored is not None:
         return CaptureCalibration(file_cameras(path, scene, train), list(stored["history"]), "read", path,
                                   stored.get("selection"))
-    found = refine(cameras_to(scene.cameras, device), train, [frame_of(f) for f in frames], grid,
+    first = None if choose is None else choose(scene.cameras, frames, "the capture's own")
+    found = refine(cameras_to(scene.cameras, device), train,
+                   [frame_of(f, None if first is None else first["chosen"]) for f in frames], grid,
                    options.calibration, float(options.projector.step))
-    selection = None if choose is None else choose(found.cameras, frames)
+    selection = first if first is None or found_nothing(found.history) else choose(found.cameras, frames,
+                                                                                    "the fitted")
     records = camera_records(scene.views, cameras_to(found.cameras, "cpu"), train, calibrated=scene.cameras)
     record = {"key": key, "frames": list(options.calibration.frames), "refine": options.calibration.refine,
               "history": found.history, "selection": selection}

@@ -7,6 +7,7 @@ the scene's file (``Scene.source``) or the config field at fault and what to try
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -21,7 +22,11 @@ from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
 from flamerecon.machine import available_bytes, format_bytes
 from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
+from flamerecon.outputs.cameras_file import cameras_from_records, read_camera_file
 from flamerecon.scenes import Scene, SceneError
+
+if TYPE_CHECKING:
+    from flamerecon.fit.options import ReconstructionOptions
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +103,30 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
                else f"its principal point ({cx:.1f}, {cy:.1f}) px lies outside the {W}x{H} image: check K's cx, cy "
                "first (pixels of this image), then its pose")
         raise SceneError(f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; {fix}")
+
+
+def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid) -> None:
+    """What a reconstruction of ``scene`` with ``options`` on ``grid`` refuses before any work
+    (each refusal one line): the split (``holdout``), a confidence asked for with fewer than two
+    training cameras, a ``calibration.file`` that cannot give the training cameras, the cameras
+    against the box (:func:`check_scene`) and the training views' silhouettes
+    (:func:`check_silhouettes`); the build checks them again on each level."""
+    train, _ = scene.split(None if options.holdout is None else list(options.holdout))
+    if options.uncertainty.enabled and len(train) < 2:
+        raise ConfigError(
+            f"uncertainty.enabled: the confidence needs at least two training cameras (its ensemble leaves each "
+            f"out in turn; with one it sees nothing the cameras leave open and predicts far too high a PSNR), "
+            f"this run trains on {len(train)}; hold out fewer cameras (holdout=...), or leave uncertainty off")
+    if options.calibration.file is not None:  # read (and refused) before any work, as the run reads it later
+        path = options.calibration.file
+        cameras_from_records(read_camera_file(path)["cameras"], scene.views, scene.cameras.height,
+                             scene.cameras.width, f"calibration.file: {path}")
+    check_scene(scene, grid)
+    masks = scene.masks
+    if masks is None:
+        masks = torch.zeros(scene.num_views, *scene.image_size, dtype=torch.bool, device=scene.images.device)
+        masks[train] = silhouettes(scene.images[train], **options.silhouette.as_dict())
+    check_silhouettes(scene, masks, train, options.silhouette)
 
 
 def density_fault(density: np.ndarray | torch.Tensor, diagonal: float) -> str | None:

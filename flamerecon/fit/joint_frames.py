@@ -26,7 +26,8 @@ import torch
 from flamerecon.arguments import fields, instance
 from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError
-from flamerecon.fit.build import Setup, build, check_frame_inputs, make_problem
+from flamerecon.fit.build import Setup, build, check_frame_inputs, make_problem, scene_grid
+from flamerecon.fit.checks import check_before_work
 from flamerecon.fit.debias import debias
 from flamerecon.fit.option_rules import check_section
 from flamerecon.fit.options import ReconstructionOptions
@@ -198,6 +199,9 @@ def reconstruct_frames(scenes: Sequence[Scene], options: ReconstructionOptions |
     torch.manual_seed(int(options.seed))
     set_threads(options.threads)
     device = resolve_device(options.device if device is None else str(device))
+    for scene in scenes:
+        check_before_work(scene, options, scene_grid(options.grid, scene))
+    hook.begin()
     prepared = prepare_frames(scenes, options, device)
     opts = joint_solve_options(options, joint, prepared)
     shifts: list = []

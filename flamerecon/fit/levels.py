@@ -88,6 +88,12 @@ def ladder_rungs(scene: Scene, ladder: LadderOptions, fine: VoxelGrid) -> list[L
             grid = VoxelGrid.from_box(fine.bbox_min, fine.bbox_max, res if isinstance(res, int) else list(res))
         except (ValueError, TypeError) as err:
             raise ConfigError(f"ladder.rungs: rung [{d}, {res}]: {err}") from err
+        if any(p > q for p, q in zip(grid.resolution, fine.resolution)):
+            mine, theirs = ("x".join(map(str, g.resolution)) for g in (grid, fine))
+            raise ConfigError(
+                f"ladder.rungs: rung [{d}, {res}] ({mine} cells) is finer than the run's own grid ({theirs} cells, "
+                f"grid.resolution); a rung solves a coarser problem first: give grid.resolution at least {res}, or "
+                f"drop the rung (ladder.rungs=[...] without it; ladder.rungs=[] for no ladder)")
         levels.append(Level(grid, d, budget[d]))
     return levels
 

@@ -16,7 +16,7 @@ use, refused by name: ``threads: got 1000000; threads must be at most 2 (this ma
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 
 from flamerecon.arguments import describe
@@ -204,6 +204,7 @@ RULES: dict[str, Rule] = {
     "calibration.folder": Rule(text, null=True),
     "calibration.file": Rule(text, null=True),
     "calibration.score_before": Rule(boolean),
+    "calibration.min_gain": Rule(number(0, 1)),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),
@@ -408,11 +409,14 @@ def leaves(tree: dict, prefix: str = "") -> dict[str, object]:
 class Need:
     """An option that does something only together with another: ``used(value)`` says the
     option was set to do something, ``met(flat options)`` whether what it needs is there
-    (``needs``, in words, for the message)."""
+    (``needs``, in words, for the message). ``preset``: a scene preset may set it for when the
+    other is turned on (ScalarFlow's ``uncertainty.scale``), so it is refused only where the
+    command line gives it (:func:`check_needs`' ``given``)."""
 
     used: Callable[[object], bool]
     met: Callable[[Mapping], bool]
     needs: str
+    preset: bool = False
 
 
 _REFINEMENT = "a refinement (calibration.refine=pose or pose+intrinsics, or a calibration.file)"
@@ -436,6 +440,22 @@ def _changed(default) -> Callable[[object], bool]:
     return lambda value: value != default
 
 
+def _given(_value) -> bool:
+    return True
+
+
+def _rung_runs(flat: Mapping) -> bool:
+    """A rung of ``ladder.rungs`` runs: its downscale is above the scene's (``scene.downscale``,
+    1 where the scene has none)."""
+    own = flat.get("scene.downscale") or 1
+    return any(int(rung[0]) > int(own) for rung in flat.get("ladder.rungs") or ())
+
+
+_UNCERTAINTY = "the confidence (uncertainty.enabled=true)"
+_RUNG = ("a rung of the ladder that runs (ladder.rungs with a downscale above scene.downscale, e.g. "
+         "scene.downscale=1 under ScalarFlow's [[4, 128], [2, 192]])")
+
+
 #: options accepted alone but doing nothing without another: refused by name
 #: (:func:`check_needs`) rather than ignored in silence. ``temporal.*`` against its defaults
 #: in conf/train.yaml.
@@ -455,25 +475,53 @@ NEEDS: dict[str, Need] = {
        for key, default in {"reweight_eps": 0.1, "reweight": "tv"}.items()},
     **{f"temporal.{key}": Need(_changed(default), _frames, "frames solved jointly (scene.frames=[first,last])")
        for key, default in {"l2": 0.01, "tv": 0.0, "motion": "none", "max_shift": 3, "tol": 1.0e-5}.items()},
+    # options a preset may set for when their switch is on: refused only where the command line gives them
+    **{f"uncertainty.{key}": Need(_given, lambda flat: flat.get("uncertainty.enabled") is True, _UNCERTAINTY, True)
+       for key in ("members", "shift_voxels", "scale", "iterations", "weight_factor")},
+    **{f"ladder.{key}": Need(_given, _rung_runs, _RUNG, True) for key in ("iterations", "final_iterations")},
+    **{f"photometry.{key}": Need(_given, lambda flat: flat.get("photometry.fit_gain") is True,
+                                 "the gain fit (photometry.fit_gain=true)", True) for key in ("fit_offset", "rounds")},
+    "debias.iterations": Need(_given, lambda flat: flat.get("debias.method") == "refit",
+                              "the refit debias (debias.method=refit)", True),
+    **{f"select.{key}": Need(_given, lambda flat: flat.get("select.auto") is True,
+                             "the weight selection (select.auto=true)", True) for key in ("folds", "iterations")},
+    "export.iso": Need(_given, lambda flat: bool(set(flat.get("export.formats") or ()) & {"ply", "obj", "mesh", "all"}),
+                       "a mesh export (export=mesh, or export.formats with ply, obj or all)", True),
+    "log.eval_share": Need(lambda v: v is not None, lambda flat: (flat.get("log.eval_every") or 0) > 0,
+                           "held-out pictures during the solve (log.eval_every >= 1)", True),
+    **{f"calibration.{key}": Need(_given, lambda flat: flat.get("calibration.refine", "none") != "none",
+                                  "a camera fit (calibration.refine=pose or pose+intrinsics)", True)
+       for key in ("rounds", "iterations", "band_px", "max_rays", "prior_rotation_deg", "prior_translation",
+                   "prior_focal", "prior_principal_px", "fit_against", "resolution", "frames", "first_iterations",
+                   "solve_iterations", "seed", "min_gain")},
 }
 
 
-def check_needs(flat: Mapping, error: type[FlameReconError] = ConfigError) -> None:
+def check_needs(flat: Mapping, error: type[FlameReconError] = ConfigError, given: Collection[str] | None = None) -> None:
     """Raise ``error`` for the first option of ``flat`` ({dotted key: value}) set to do something
-    that needs another option which is not there (:data:`NEEDS`)."""
+    that needs another option which is not there (:data:`NEEDS`); an option a preset may set
+    (``Need.preset``) only where it is among ``given``, the keys the command line gives (None:
+    the Python API, where every such option is kept for a later call, e.g. ``fr.confidence``)."""
     for key, need in NEEDS.items():
+        if need.preset and (given is None or key not in given):
+            continue
         if key in flat and need.used(flat[key]) and not need.met(flat):
+            way_out = f"drop {key} from the command line" if need.preset else f"leave {key} at its default"
             raise error(f"{key}: got {describe(flat[key])}, which does nothing without {need.needs}; "
-                        f"set that too or leave {key} at its default")
+                        f"set that too or {way_out}")
+
+
 
 
 #: solvers whose ``max_iters`` may be null (LARS: 10 path steps per voxel).
 NULL_MAX_ITERS = ("lars",)
 
 
-def check_options(config: dict) -> None:
+def check_options(config: dict, given: Collection[str] | None = None) -> None:
     """Raise :class:`~flamerecon.errors.ConfigError` for the first option of ``config`` (a
-    plain nested dict, ``hydra`` node excluded) that breaks its rule in :data:`RULES`."""
+    plain nested dict, ``hydra`` node excluded) that breaks its rule in :data:`RULES`, or that
+    does nothing in the combination (:func:`check_needs`; ``given``: the keys the command line
+    gives, :func:`given_keys`)."""
     flat = leaves({k: v for k, v in config.items() if k != "hydra"})
     for key, value in flat.items():
         wrong = problem(key, value)
@@ -488,4 +536,79 @@ def check_options(config: dict) -> None:
     if unbounded and name not in NULL_MAX_ITERS:
         raise ConfigError(f"solver.max_iters: got None; solver {name} needs an integer >= 1 "
                           "(only lars takes null)")
-    check_needs(flat)
+    check_needs(flat, given=given)
+
+
+@dataclass(frozen=True)
+class Yield:
+    """A rule by which a preset's option ``key`` overrides options the command line may give
+    (``overridden(flat)``: their keys), in words ``what`` it does; ``off``: the value of ``key``
+    that turns the rule off. Given one of those options and not ``key``, the rule is turned off
+    and said (the option given wins); given both, ``conflict`` says whether the option given
+    would then go unused (refused) or only holds elsewhere (kept)."""
+
+    key: str
+    off: object
+    overridden: Callable[[Mapping], tuple[str, ...]]
+    what: str
+    conflict: bool
+
+
+#: the options of a camera fit (what a calibration.file replaces)
+_FIT = tuple(f"calibration.{key}" for key in (
+    "refine", "frames", "rounds", "iterations", "band_px", "max_rays", "prior_rotation_deg", "prior_translation",
+    "prior_focal", "prior_principal_px", "fit_against", "resolution", "first_iterations", "solve_iterations", "seed",
+    "min_gain"))
+
+
+def _selected(flat: Mapping) -> tuple[str, ...]:
+    """The solver options the weight selection chooses: ``solver.l1``, ``solver.l1_rel`` and
+    every key of the run's solver's ``select.candidates``."""
+    candidates = (flat.get("select.candidates") or {}).get(flat.get("solver.name")) or []
+    return tuple(dict.fromkeys(["solver.l1", "solver.l1_rel",
+                                *(f"solver.{k}" for c in candidates if isinstance(c, Mapping) for k in c)]))
+
+
+#: the rules by which an option overrides another (:class:`Yield`, :func:`given_wins`); each is
+#: said in the run's log where it holds
+YIELDS = (
+    Yield("ladder.final_iterations", None, lambda flat: ("solver.max_iters",),
+          "sets the iterations of the run's own level once a ladder rung ran", False),
+    Yield("ladder.iterations", None, lambda flat: ("solver.max_iters",), "sets the iterations of each ladder rung",
+          False),
+    Yield("select.auto", False, _selected, "chooses the solver's weights from select.candidates", True),
+    Yield("holdout", None, lambda flat: ("scene.holdout",), "holds out its own views in place of the scene's", True),
+    Yield("calibration.file", None, lambda flat: _FIT, "reads the cameras from the file in place of a camera fit",
+          True),
+)
+
+
+def given_keys(overrides: Collection[str]) -> set[str]:
+    """The dotted keys a command line's ``overrides`` set (``+key=``, ``++key=``, ``~key`` too;
+    a group choice ``solver=tv`` gives ``solver``)."""
+    keys = set()
+    for override in overrides:
+        key = str(override).split("=", 1)[0].lstrip("+~").strip()
+        if key:
+            keys.add(key)
+    return keys
+
+
+def given_wins(flat: Mapping, given: Collection[str]) -> dict[str, tuple[object, str]]:
+    """{overriding key: (the value that turns its rule off, the option given it would override)}
+    for every rule of :data:`YIELDS` that holds in ``flat`` ({dotted key: value}) over an option
+    among ``given`` while its own key is not given: the values to set so that the option given
+    wins. Both given where the option would go unused (``Yield.conflict``): a ConfigError."""
+    out = {}
+    for rule in YIELDS:
+        hit = [k for k in rule.overridden(flat) if k in given]
+        if not hit or flat.get(rule.key) is None or flat.get(rule.key) == rule.off:
+            continue
+        if rule.key in given:
+            if rule.conflict:
+                shown = str(flat[rule.key]).lower() if isinstance(flat[rule.key], bool) else flat[rule.key]
+                raise ConfigError(f"{hit[0]}: given with {rule.key}={shown}, which {rule.what}, "
+                                  f"so {hit[0]} would not be used; give one of them")
+            continue
+        out[rule.key] = (rule.off, hit[0])
+    return out

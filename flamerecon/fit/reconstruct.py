@@ -36,7 +36,7 @@ from flamerecon.fit.build import (
     split_views,
 )
 from flamerecon.fit.capture_calibration import CaptureCalibration, capture_refinement, file_cameras
-from flamerecon.fit.checks import check_grid_memory, density_fault, memory_budget
+from flamerecon.fit.checks import check_before_work, check_grid_memory, density_fault, memory_budget
 from flamerecon.fit.debias import DebiasOptions, debias
 from flamerecon.fit.levels import LadderOptions, Level, ladder_rungs, plan_levels
 from flamerecon.fit.options import ReconstructionOptions
@@ -48,7 +48,7 @@ from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.geometry.photometry import fit_gain_offset_rows, normalize_gains
 from flamerecon.progress import Progress
 from flamerecon.rules import integer, number
-from flamerecon.scenes import Scene, capture_length, load_downscaled
+from flamerecon.scenes import Scene, capture_frames, load_downscaled
 from flamerecon.solvers import Problem, Solver, SolveResult
 
 log = logging.getLogger(__name__)
@@ -119,6 +119,10 @@ class SolveHook:
     def resume(self) -> ResumePoint | None:
         """The stage to continue from (None: start afresh)."""
         return None
+
+    def begin(self) -> None:
+        """Called once, when the inputs have passed every check made before any work (the run
+        layer's hook prints the composed config here); this one does nothing."""
 
     def joint(self, setups: list[Setup], solve: Callable[[Callable | None], Any]) -> Any:
         """The joint solve of several frames (:func:`flamerecon.fit.joint_frames.reconstruct_frames`):
@@ -454,7 +458,7 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
                 {**record, "downscale": rungs[0].downscale})
     started = time.perf_counter()
     if refining.frames == "auto":
-        refining = refining.for_capture(capture_length(scene))
+        refining = refining.for_capture(capture_frames(scene))
         options = options.replace(calibration=refining)
     if "calibrated_cameras" in scene.meta:
         scene = replace(scene, cameras=scene.meta["calibrated_cameras"],
@@ -470,15 +474,16 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     # with the gain), so they keep the penalised structure, only its level debiased
     fitting = options.replace(debias=DebiasOptions("gain")) if options.debias.method == "refit" else options
 
-    def capture_choice(cameras, sources: list[Scene]) -> dict | None:
+    def capture_choice(cameras, sources: list[Scene], which: str) -> dict | None:
         """With select.auto: the selection record of the weights whose leave-one-view-out
-        PSNR, averaged over the calibration frames ``sources`` solved with the fitted
-        ``cameras``, is best (chosen with the capture's own cameras, in the fit's first solves,
-        the weights run stronger: the cameras' errors look like noise); None when off."""
+        PSNR, averaged over the calibration frames ``sources`` solved with ``cameras`` (``which``:
+        the capture's own, for the fit's densities, then the fitted ones: chosen with the
+        capture's own cameras the weights run stronger, as the cameras' errors look like noise),
+        is best; None when off."""
         if options.select.for_solver(options.solver.name) is None:
             return None
         tables = []
-        progress = Progress("the capture's weights on its calibration frames, with the fitted cameras", len(sources),
+        progress = Progress(f"the capture's weights on its calibration frames, with {which} cameras", len(sources),
                             "frame")
         for source in sources:
             fitted = replace(source, cameras=cameras_to(cameras, "cpu"))
@@ -491,13 +496,16 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
         best = max(range(len(table)), key=lambda k: table[k]["psnr"])
         return {"chosen": dict(table[best]["overrides"]), "candidates": table, "frames": [int(f) for f in frames]}
 
-    def frame_of(source: Scene) -> CalibrationFrame:
+    def frame_of(source: Scene, weights: dict | None = None) -> CalibrationFrame:
+        """The camera fit's view of frame ``source``: its densities solved with ``weights`` (the
+        capture's, chosen on every calibration frame), else with the weights select.auto
+        chooses in the frame's first solve."""
         images = source.images.to(device)
-        chosen: list[dict] = []  # the weights select.auto chose for the frame's first solve
+        chosen: list[dict] = [] if weights is None else [weights]  # the weights select.auto chose, or given
 
         def solve_density(views: list[int], cameras, start: torch.Tensor | None) -> torch.Tensor:
             fold = fitting.replace(holdout=tuple(name for i, name in enumerate(scene.views) if i not in views))
-            if start is not None and chosen:  # weights are chosen once per frame, not at every round
+            if chosen:  # weights are chosen once per frame (or given), not at every solve
                 fold = fold.replace(solver=fold.solver.with_values(**chosen[0]), select=replace(fold.select, auto=False))
             budget = refining.first_iterations if start is None else refining.solve_iterations
             if budget is not None and "max_iters" in fold.solver.params:
@@ -606,7 +614,9 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     volume = None if resumed is not None else init
     if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, levels[0].grid if levels else fine, int(scene.images.shape[1]))
+    check_before_work(scene, options, fine)
     check_workload(scene, options, fine, device)
+    hook.begin()
     timing: dict = {}
     clock = time.perf_counter()
     scene, calibration = calibrated_scene(scene, options, device)
@@ -621,6 +631,10 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     final = options
     if options.ladder.final_iterations and any(level.downscale is not None for level in levels):
         final = options.replace(solver=options.solver.with_values(max_iters=options.ladder.final_iterations))
+        log.info("ladder.final_iterations=%d: the run's own level solves %d iterations after the ladder's rungs, "
+                 "not solver.max_iters=%s (give solver.max_iters on the command line and it holds there too)",
+                 options.ladder.final_iterations, options.ladder.final_iterations,
+                 options.solver.params.get("max_iters"))
     setup = build(scene, final, device, fine)
     timing.update(setup=setup.seconds, assembly=setup.assembly_seconds)
     x0 = None if volume is None else hull_values(volume, setup.grid, setup.voxel_index)

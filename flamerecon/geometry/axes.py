@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 #: the names an up axis may have, normalised (a bare ``"y"`` reads as ``"+y"``)
@@ -127,3 +128,36 @@ def ground_directions(up: str) -> tuple[tuple[int, float], tuple[int, float]]:
         axis = int(Q[:, column].abs().argmax())
         out.append((axis, float(Q[axis, column])))
     return out[0], out[1]
+
+
+def azimuth_zero(up: np.ndarray) -> np.ndarray:
+    """The world direction (3,) of azimuth 0 about the unit vector ``up``: for up within a
+    degree of a world axis, +z turned by :func:`turn_from_y` (+z for +y, -y for +z), so a
+    turned scene's orbits and angles are the same; else the world axis most perpendicular to
+    ``up`` (ties to z, then x, then y). Not flattened onto the ground."""
+    up = np.asarray(up, np.float64)
+    index = int(np.abs(up).argmax())
+    if abs(up[index]) > math.cos(math.radians(1.0)):
+        return turn_from_y(("+" if up[index] > 0 else "-") + "xyz"[index]).numpy()[:, 2].copy()
+    return np.eye(3)[min((2, 0, 1), key=lambda a: abs(up[a]))]
+
+
+def ground_frame(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors (3,) of azimuth 0 and 90 degrees about ``up`` (3,): :func:`azimuth_zero`
+    flattened onto the ground, and ``up x`` it (azimuths count counter-clockwise seen from above)."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    first = azimuth_zero(up)
+    first = first - (first @ up) * up
+    first = first / np.linalg.norm(first)
+    return first, np.cross(up, first)
+
+
+def world_angles(offsets: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(azimuth in [0, 360), elevation) in degrees of the directions ``offsets`` (N, 3) about
+    ``up`` (3,), azimuth from :func:`ground_frame`'s first direction towards its second."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    first, second = ground_frame(up)
+    d = np.asarray(offsets, np.float64).reshape(-1, 3)
+    azimuth = np.degrees(np.arctan2(d @ second, d @ first)) % 360.0
+    elevation = np.degrees(np.arcsin(np.clip((d @ up) / np.linalg.norm(d, axis=1).clip(1e-12), -1, 1)))
+    return azimuth, elevation

@@ -1,25 +1,17 @@
 """The camera plan's picture: the rig and the ranked candidate cameras seen from above (looking
-down the rig's up direction), each candidate coloured by the share of the confidence volume's
-variance it is predicted to remove, the best ones numbered by rank."""
+down the scene's up axis), each candidate coloured by the share of the confidence volume's
+variance it is predicted to remove, the best ones numbered by rank, world azimuths marked."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
+from flamerecon.geometry.axes import ground_frame
 from flamerecon.outputs.figures import to_rgb8
 
 #: picture size (pixels) and the strip for the title, and how many candidates get a rank number
 SIZE_PX, TITLE_PX, NUMBERED = 520, 36, 5
-
-
-def plane_basis(up: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors across ``up`` (3,): the first along ``reference`` (3,) less its part
-    along ``up``, the second ``up x first``."""
-    up = up / np.linalg.norm(up)
-    first = reference - (reference @ up) * up
-    first = first / max(np.linalg.norm(first), 1e-12)
-    return first, np.cross(up, first)
 
 
 def camera_plan_figure(up, box_corners, fitted: dict[str, np.ndarray], held: dict[str, np.ndarray],
@@ -28,17 +20,20 @@ def camera_plan_figure(up, box_corners, fitted: dict[str, np.ndarray], held: dic
     dots, named; ``fitted``: name -> centre (3,)), the held-out ones (grey squares), and the
     candidate camera centres (N, 3) coloured by ``shares`` (N,) (fraction of the total
     variance removed, inferno, colour bar on the right) with the best :data:`NUMBERED` numbered
-    by rank; projected along ``up`` (3,) (x: the first fitted camera's side)."""
+    by rank; seen from above along ``up`` (3,), the scene's up axis: world azimuth 0 to the
+    right and 90 upwards (:func:`~flamerecon.geometry.axes.ground_frame`), marked on a ring with
+    the world axes they lie along."""
     up = np.asarray(up, np.float64)
     everything = np.vstack([box_corners, *fitted.values(), *held.values(), candidates])
     centre = np.asarray(box_corners, np.float64).mean(0)
-    first, second = plane_basis(up, next(iter(fitted.values())) - centre)
+    first, second = ground_frame(up)
 
     def flat(p: np.ndarray) -> np.ndarray:
         d = np.asarray(p, np.float64) - centre
         return np.stack([d @ first, d @ second], -1)
 
-    span = float(np.abs(flat(everything)).max()) * 1.15 or 1.0
+    reach = float(np.abs(flat(everything)).max()) or 1.0
+    span = reach * 1.3
     plot = SIZE_PX - 40
 
     def pixel(p: np.ndarray) -> tuple[int, int]:
@@ -67,8 +62,20 @@ def camera_plan_figure(up, box_corners, fitted: dict[str, np.ndarray], held: dic
             else:
                 cv2.circle(image, (x, y), 5, colour, -1, cv2.LINE_AA)
             cv2.putText(image, name, (x + 8, y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, colour, 1, cv2.LINE_AA)
+    cv2.circle(image, pixel(centre), round(plot / 2 * reach / span), (70, 70, 70), 1, cv2.LINE_AA)
+    for angle in (0, 90, 180, 270):
+        a = np.radians(angle)
+        direction = np.cos(a) * first + np.sin(a) * second
+        x, y = pixel(centre + direction * reach * 1.15)
+        label = f"{angle} deg" + (f" ({axis_name_of(direction)})" if axis_name_of(direction) else "")
+        size = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.36, 1)[0][0]
+        x -= {0: 0, 90: size // 2, 180: size, 270: size // 2}[angle]  # 0 deg to the right, 90 up
+        x = min(max(x, 2), SIZE_PX - size - 2)
+        cv2.putText(image, label, (x, min(max(y + 4, TITLE_PX + 12), SIZE_PX + TITLE_PX - 4)), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.36, (170, 170, 170), 1, cv2.LINE_AA)
     for row, text in enumerate((title or "where to put the next camera (top view)",
-                                "dots: fitted cameras, squares: held out, circles: candidates (1 = best)")):
+                                ("dots: fitted cameras, squares: held out, circles: candidates (1 = best); "
+                                 f"seen from above ({axis_name_of(up) or 'up'})"))):
         cv2.putText(image, text, (6, 14 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42 if row == 0 else 0.36,
                     (255, 255, 255), 1, cv2.LINE_AA)
     ramp = np.linspace(top, 0.0, plot, dtype=np.float32)[:, None].repeat(12, 1)
@@ -81,3 +88,9 @@ def camera_plan_figure(up, box_corners, fitted: dict[str, np.ndarray], held: dic
     cv2.putText(image, "removed", (x0 - 4, y0 + plot + 28), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (255, 255, 255), 1,
                 cv2.LINE_AA)
     return image
+
+
+def axis_name_of(direction: np.ndarray) -> str:
+    """``+x`` ... ``-z`` for a unit direction along a world axis, else an empty string."""
+    k = int(np.abs(direction).argmax())
+    return ("+" if direction[k] > 0 else "-") + "xyz"[k] if abs(direction[k]) > 0.999 else ""

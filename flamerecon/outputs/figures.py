@@ -12,6 +12,7 @@ import math
 import numbers
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -19,7 +20,14 @@ import numpy as np
 import torch
 
 from flamerecon.arguments import value, wrong_type, wrong_value
-from flamerecon.geometry.axes import UP_AXES, axis_index, axis_name, axis_sign, ground_directions, turn_from_y
+from flamerecon.geometry.axes import (
+    UP_AXES,
+    axis_index,
+    axis_name,
+    axis_sign,
+    azimuth_zero,
+    ground_directions,
+)
 from flamerecon.geometry.units import display_length
 from flamerecon.outputs.atomic import atomic_path, atomic_write_bytes, write_errno
 from flamerecon.outputs.export import voxel_size
@@ -35,8 +43,33 @@ def to_display(image: torch.Tensor) -> torch.Tensor:
     return image.expand(3, -1, -1) if image.shape[0] == 1 else image[:3]
 
 
-#: heights and widths of the held-out figure's title strip and colour bar, pixels
+#: heights and widths of the held-out figure's title strip and colour bar, pixels, for panels of
+#: :data:`MIN_PANEL_PX` (:func:`figure_layout` scales them with the panels)
 TITLE_PX, BAR_PX, BAR_LABEL_PX = 14, 8, 40
+#: a held-out figure's panels are enlarged (by a whole factor, nearest neighbour) to at least this
+#: height, so that a small capture's figure reads; its titles and labels grow with taller panels
+MIN_PANEL_PX = 240
+
+
+@dataclass(frozen=True)
+class FigureLayout:
+    """How a held-out figure of (H, W) images is drawn: ``scale``, the whole factor its panels
+    are enlarged by; ``font`` (cv2's scale of its titles and labels), ``title_px`` (one title
+    line's height), ``bar_px`` and ``bar_label_px`` (the colour bar's and its labels' widths),
+    all in proportion to the enlarged panels' height (:data:`MIN_PANEL_PX` for the base sizes)."""
+
+    scale: int
+    font: float
+    title_px: int
+    bar_px: int
+    bar_label_px: int
+
+
+def figure_layout(height: int, width: int) -> FigureLayout:
+    """The :class:`FigureLayout` of a held-out figure of ``height`` x ``width`` images."""
+    scale = math.ceil(MIN_PANEL_PX / height) if height < MIN_PANEL_PX else 1
+    size = height * scale / MIN_PANEL_PX if height * scale > MIN_PANEL_PX else 1.0
+    return FigureLayout(scale, 0.35 * size, round(TITLE_PX * size), round(BAR_PX * size), round(BAR_LABEL_PX * size))
 
 
 def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "",
@@ -45,46 +78,61 @@ def heldout_figure(rendered: torch.Tensor, captured: torch.Tensor, view: str = "
     """A held-out view read without a legend: panels "rendered <view>" (with its ``psnr`` and
     the black image's, dB, when given) | "captured" | "|error|, image units" (| "predicted
     sigma" with ``sigma``, the render's confidence image (C, H, W):
-    :mod:`flamerecon.evaluate.uncertainty`) under a title strip of :data:`TITLE_PX` (two lines
-    of it where a title is wider than its panel); the error and sigma (means over channels, in
-    the images' units, 1 = white) share the inferno colour map and its colour bar (0 at the
-    bottom, the largest of them at the top) to their right: (strip + H, n W + BAR_PX +
-    BAR_LABEL_PX, 3) uint8 with n = 3 or 4, from images (C, H, W) in [0, 1]."""
+    :mod:`flamerecon.evaluate.uncertainty`) under a title strip (two lines of it where a title
+    is wider than its panel); the error and sigma (means over channels, in the images' units, 1
+    = white) share the inferno colour map and its colour bar (0 at the bottom, the largest of
+    them at the top) to their right. Sized by :func:`figure_layout`: panels of at least
+    :data:`MIN_PANEL_PX` (a small capture enlarged), titles and labels in proportion: (strip +
+    sH, n sW + bar + labels, 3) uint8 with n = 3 or 4 and s the layout's scale, from images
+    (C, H, W) in [0, 1]."""
     r, c = to_display(rendered), to_display(captured)
     error = (rendered.detach().float().cpu().clamp(0, 1) - captured.detach().float().cpu()).abs().mean(0)
     spread = None if sigma is None else sigma.detach().float().cpu().mean(0)
     top = max(float(error.max()), 0.0 if spread is None else float(spread.max()))
-    H, W = error.shape
-    panels = [(r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
-              (c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8), to_rgb8(error[None], top or 1.0)]
-    ramp = np.linspace(top or 1.0, 0.0, H, dtype=np.float32)[:, None].repeat(BAR_PX, 1)
-    bar = np.zeros((H, BAR_PX + BAR_LABEL_PX, 3), np.uint8)
-    bar[:, :BAR_PX] = to_rgb8(ramp[None], top or 1.0)
+    layout = figure_layout(*error.shape)
+    k = layout.scale
+
+    def big(panel: np.ndarray) -> np.ndarray:
+        return panel if k == 1 else np.repeat(np.repeat(panel, k, 0), k, 1)
+
+    H, W = error.shape[0] * k, error.shape[1] * k
+    panels = [big((r.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)),
+              big((c.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)), big(to_rgb8(error[None], top or 1.0))]
+    ramp = np.linspace(top or 1.0, 0.0, H, dtype=np.float32)[:, None].repeat(layout.bar_px, 1)
+    bar = np.zeros((H, layout.bar_px + layout.bar_label_px, 3), np.uint8)
+    bar[:, :layout.bar_px] = to_rgb8(ramp[None], top or 1.0)
     scored = "" if psnr is None else f"{psnr:.2f} dB" + ("" if black is None else f" (black {black:.2f})")
+
+    def fits(text: str) -> bool:
+        return _text_width(text, layout.font) <= W - 4
+
     titles = [[f"rendered {view}".strip() + (f": {scored}" if scored else "")], ["captured"],
-              ["|error|, image units" if _text_width("|error|, image units") <= W - 4 else "|error|"]]
-    if scored and _text_width(titles[0][0]) > W - 4:  # a narrow panel: the scores on a second line
+              ["|error|, image units" if fits("|error|, image units") else "|error|"]]
+    if scored and not fits(titles[0][0]):  # a narrow panel: the scores on a second line
         titles[0] = [f"rendered {view}".strip(), scored]
     if spread is not None:
-        panels.append(to_rgb8(spread[None], top or 1.0))
-        titles.append(["predicted sigma" if _text_width("predicted sigma") <= W - 4 else "sigma"])
+        panels.append(big(to_rgb8(spread[None], top or 1.0)))
+        titles.append(["predicted sigma" if fits("predicted sigma") else "sigma"])
     n = len(panels)
-    strip = TITLE_PX * max(len(t) for t in titles)
+    line = layout.title_px
+    strip = line * max(len(t) for t in titles)
     figure = np.zeros((strip + H, n * W + bar.shape[1], 3), np.uint8)
     figure[strip:] = np.concatenate([*panels, bar], axis=1)
-    for k, lines in enumerate(titles):
-        for line, title in enumerate(lines):
-            cv2.putText(figure, title, (k * W + 2, (line + 1) * TITLE_PX - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
-                        (255, 255, 255), 1, cv2.LINE_AA)
-    for y, text in ((strip + 9, f"{top:.2g}"), (strip + H - 2, "0")):
-        cv2.putText(figure, text, (n * W + BAR_PX + 2, y), cv2.FONT_HERSHEY_SIMPLEX, 0.3,
-                    (255, 255, 255), 1, cv2.LINE_AA)
+    thick = max(1, round(layout.font / 0.7))
+    for j, lines in enumerate(titles):
+        for row, title in enumerate(lines):
+            cv2.putText(figure, title, (j * W + 2, (row + 1) * line - round(line * 0.3)), cv2.FONT_HERSHEY_SIMPLEX,
+                        layout.font, (255, 255, 255), thick, cv2.LINE_AA)
+    label = layout.font * 0.3 / 0.35
+    for y, text in ((strip + round(line * 0.65), f"{top:.2g}"), (strip + H - 2, "0")):
+        cv2.putText(figure, text, (n * W + layout.bar_px + 2, y), cv2.FONT_HERSHEY_SIMPLEX, label,
+                    (255, 255, 255), thick, cv2.LINE_AA)
     return figure
 
 
-def _text_width(text: str) -> int:
-    """Pixels a figure title takes (cv2's small font at 0.35)."""
-    return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0]
+def _text_width(text: str, font: float = 0.35) -> int:
+    """Pixels a figure title takes (cv2's small font at ``font``)."""
+    return cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font, 1)[0][0]
 
 
 def detail_comparison(images: Sequence[torch.Tensor], bands: Sequence[torch.Tensor],
@@ -527,16 +575,6 @@ def support_box(density, bbox_min, bbox_max, threshold: float = 0.01) -> tuple[n
     first = np.array([i.min(), j.min(), k.min()])
     last = np.array([i.max(), j.max(), k.max()]) + 1
     return lo + first * size, lo + last * size
-
-
-def azimuth_zero(up: np.ndarray) -> np.ndarray:
-    """The world direction (3,) of an orbit's azimuth 0 about the unit vector ``up``: for up
-    within a degree of a world axis, +z turned by :func:`~flamerecon.geometry.axes.turn_from_y`;
-    else the world axis most perpendicular to ``up`` (ties to z, then x, then y)."""
-    index = int(np.abs(up).argmax())
-    if abs(up[index]) > math.cos(math.radians(1.0)):
-        return turn_from_y(("+" if up[index] > 0 else "-") + "xyz"[index]).numpy()[:, 2].copy()
-    return np.eye(3)[min((2, 0, 1), key=lambda a: abs(up[a]))]
 
 
 # ---------------------------------------------------------------------------------------------

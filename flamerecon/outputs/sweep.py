@@ -23,6 +23,9 @@ COLUMNS = (("heldout PSNR dB", ("heldout", "psnr"), "{:.2f}"), ("black dB", ("he
            ("SSIM", ("heldout", "ssim"), "{:.4f}"), ("detail", ("heldout", "detail"), "{:.3f}"),
            ("train PSNR dB", ("train", "psnr"), "{:.2f}"), ("iterations", ("solver", "iterations"), "{:d}"),
            ("seconds", ("solver", "seconds"), "{:.1f}"))
+#: the column a sweep's table gains where a job ran ``leave_one_out=true`` (every camera fitted: no
+#: held-out score; each camera left out in turn instead)
+LOO_COLUMN = ("leave-one-out PSNR dB", ("leave_one_out", "psnr"), "{:.2f}")
 
 
 def _job_folders(sweep_dir: Path) -> list[Path]:
@@ -47,6 +50,8 @@ def _value(metrics: dict, where: tuple[str, str]):
         return None
     if section == "solver":
         return node.get(key) if isinstance(node.get(key), (int, float)) else None
+    if section == "leave_one_out":
+        node = node.get("views") if isinstance(node.get("views"), dict) else {}
     values = [v[key] for v in node.values() if isinstance(v, dict) and isinstance(v.get(key), (int, float))]
     return sum(values) / len(values) if values else None
 
@@ -58,15 +63,17 @@ def sweep_rows(sweep_dir: str | os.PathLike) -> tuple[list[str], list[dict[str, 
     overrides = [_overrides(job) for job in jobs]
     keys = sorted({k for o in overrides for k in o})
     varying = [k for k in keys if len({o.get(k) for o in overrides}) > 1]
-    rows = []
-    for job, given in zip(jobs, overrides):
-        row = {"job": job.name, **{k: given.get(k, "") for k in varying}}
+    rows, found = [], []
+    for job in jobs:
         path = job / "metrics.json"
         try:
-            metrics = json.loads(path.read_text()) if path.is_file() else {}
+            found.append(json.loads(path.read_text()) if path.is_file() else {})
         except json.JSONDecodeError:
-            metrics = {}
-        for name, where, fmt in COLUMNS:
+            found.append({})
+    columns = sweep_columns(found)
+    for job, given, metrics in zip(jobs, overrides, found):
+        row = {"job": job.name, **{k: given.get(k, "") for k in varying}}
+        for name, where, fmt in columns:
             value = _value(metrics, where)
             row[name] = "" if value is None else fmt.format(int(value) if fmt == "{:d}" else float(value))
         failed = job / FAILED_FILE
@@ -76,13 +83,19 @@ def sweep_rows(sweep_dir: str | os.PathLike) -> tuple[list[str], list[dict[str, 
     return varying, rows
 
 
+def sweep_columns(metrics: list[dict]) -> tuple:
+    """The table's score columns for jobs with these metrics: :data:`COLUMNS`, and
+    :data:`LOO_COLUMN` where a job has a leave-one-out record."""
+    return COLUMNS + ((LOO_COLUMN,) if any(isinstance(m, dict) and m.get("leave_one_out") for m in metrics) else ())
+
+
 def sweep_table(sweep_dir: str | os.PathLike) -> str:
     """The jobs of a multirun as a plain-text table (held-out scores are means over the
     held-out views), headed by the sweep folder."""
     varying, rows = sweep_rows(sweep_dir)
     if not rows:
         return f"{sweep_dir}: no job folders"
-    names = ["job", *varying, *(c[0] for c in COLUMNS), "status"]
+    names = ["job", *varying, *(k for k in rows[0] if k not in ("job", "status", *varying)), "status"]
     widths = [max(len(n), *(len(r[n]) for r in rows)) for n in names]
     lines = [f"{sweep_dir}: {len(rows)} jobs" + (f", differing in {', '.join(varying)}" if varying else ""),
              "  ".join(n.rjust(w) for n, w in zip(names, widths))]

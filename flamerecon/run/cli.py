@@ -79,19 +79,20 @@ def frame_list(text: str) -> list[int]:
     return frames
 
 
-def at_least(least: int) -> Callable[[str], int]:
-    """argparse type: an integer >= ``least``."""
+def at_least(least: int, most: int | None = None) -> Callable[[str], int]:
+    """argparse type: an integer >= ``least`` (and <= ``most`` when given)."""
+    want = f"an integer >= {least}" if most is None else f"an integer from {least} to {most}"
 
     def read(text: str) -> int:
         try:
             number = int(text)
         except ValueError:
             number = None
-        if number is None or number < least:
-            raise argparse.ArgumentTypeError(f"got '{text}'; give an integer >= {least}")
+        if number is None or number < least or (most is not None and number > most):
+            raise argparse.ArgumentTypeError(f"got '{text}'; give {want}")
         return number
 
-    read.__name__ = f"integer >= {least}"
+    read.__name__ = want.removeprefix("an ")
     return read
 
 
@@ -132,7 +133,8 @@ def _writable(folder: Path, path: Path) -> Path:
 
 def compose_train(overrides: list[str], default_scene: str | None = "scalarflow"):
     """``conf/train.yaml`` composed with train.py ``overrides``, ``scene=<default_scene>`` in
-    front unless they choose a scene (the real-capture scripts' default; None: the config's)."""
+    front unless they choose a scene (the real-capture scripts' default; None: the config's),
+    an option they give winning over a preset's rule that would override it (:func:`as_given`)."""
     from hydra import compose, initialize_config_dir
 
     from flamerecon.resources import config_dir
@@ -140,7 +142,39 @@ def compose_train(overrides: list[str], default_scene: str | None = "scalarflow"
     if default_scene and not any(o.startswith("scene=") for o in overrides):
         overrides = [f"scene={default_scene}", *overrides]
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return compose(config_name="train", overrides=overrides)
+        return as_given(compose(config_name="train", overrides=overrides), overrides)[0]
+
+
+def as_given(cfg, overrides: list[str] | None):
+    """(``cfg``, notes): ``cfg`` with every preset's rule that would override an option the
+    command line's ``overrides`` give turned off (:func:`~flamerecon.fit.option_rules.given_wins`:
+    with ``solver.max_iters`` given, ScalarFlow's ``ladder.final_iterations`` no longer replaces
+    it on the run's own level; with ``solver.l1_rel`` given, a preset's ``select.auto`` no longer
+    chooses it), and a line saying so for each (``cfg`` itself when none applies)."""
+    from omegaconf import OmegaConf
+
+    from flamerecon.fit.option_rules import YIELDS, given_keys, given_wins, leaves
+
+    flat = leaves(OmegaConf.to_container(cfg, resolve=False))
+    turned = given_wins(flat, given_keys(overrides or []))
+    if not turned:
+        return cfg, []
+    cfg = cfg.copy()
+    notes = []
+    for rule in YIELDS:
+        if rule.key in turned:
+            off, hit = turned[rule.key]
+            OmegaConf.update(cfg, rule.key, off, merge=False)
+            notes.append(f"{rule.key}: the preset's {_as_typed(flat[rule.key])} set to {_as_typed(off)}: "
+                         f"{hit}={_as_typed(flat[hit])}, given on the command line, wins (the rule {rule.what})")
+    return cfg, notes
+
+
+def _as_typed(value) -> str:
+    """A config value as the command line writes it (null, true, false; others as they print)."""
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def run_child(command: list[str]) -> subprocess.CompletedProcess:

@@ -103,6 +103,13 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
     writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max, s.scene.up), it, "HWC")
 
 
+def announce(text: str | None) -> None:
+    """Print ``text`` (a run's composed config) when there is one: what a hook's
+    :meth:`~flamerecon.fit.reconstruct.SolveHook.begin` does once the run's checks have passed."""
+    if text:
+        print(text, flush=True)
+
+
 @dataclass(frozen=True)
 class RunOptions:
     """The run layer's ``log:`` and ``checkpoint:`` nodes."""
@@ -122,6 +129,7 @@ class RunHook(SolveHook):
 
     ``watch(stage, iteration, x, info)``, when given, is called after the monitor at every
     check of every solve (tests send a SIGINT from it at a chosen stage and iteration).
+    ``announce``, when given, is printed once the checks before any work have passed.
 
     A coarse level that diverges raises :class:`~flamerecon.errors.SolveDiverged` (nothing is
     written); on the final grid the last good iterate comes back with ``stopped`` set.
@@ -130,9 +138,10 @@ class RunHook(SolveHook):
     """
 
     def __init__(self, run_dir: str | Path, writer: RunWriter, options: RunOptions,
-                 plan: list[list[int]], checkpoint: dict | None = None, watch: Watch | None = None):
+                 plan: list[list[int]], checkpoint: dict | None = None, watch: Watch | None = None,
+                 announce: str | None = None):
         self.run_dir, self.writer, self.options = Path(run_dir), writer, options
-        self.plan, self.checkpoint, self.watch = plan, checkpoint, watch
+        self.plan, self.checkpoint, self.watch, self.announce = plan, checkpoint, watch, announce
         self.monitor_seconds = 0.0
         self.stop: StopSolve | None = None
         self.point = None if checkpoint is None else resume_point(self.run_dir, checkpoint["meta"], plan)
@@ -140,6 +149,9 @@ class RunHook(SolveHook):
     def resume(self) -> ResumePoint | None:
         """The stage the checkpoint was written in, until that stage's solve has resumed."""
         return self.point
+
+    def begin(self) -> None:
+        announce(self.announce)
 
     def solve(self, stage: Stage, setup: Setup, problem: Problem, solver: Solver,
               x0: torch.Tensor | None, carry: dict) -> SolveResult:

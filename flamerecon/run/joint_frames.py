@@ -30,6 +30,7 @@ from flamerecon.outputs.atomic import make_subfolder, write_json_atomic
 from flamerecon.outputs.export import save_density
 from flamerecon.run.config import options_from_config, start_run
 from flamerecon.run.folder import cameras_record, scores, write_scores
+from flamerecon.run.hook import announce
 from flamerecon.run.tensorboard import RunWriter
 from flamerecon.scenes import load_scene
 from flamerecon.solvers.temporal import JointResult
@@ -71,17 +72,21 @@ def joint_frames_options(cfg: DictConfig) -> JointFramesOptions:
 class LoggingHook(SolveHook):
     """The joint solve with its scalars logged to TensorBoard at every check."""
 
-    def __init__(self, writer: RunWriter) -> None:
-        self.writer = writer
+    def __init__(self, writer: RunWriter, announce: str | None = None) -> None:
+        self.writer, self.announce = writer, announce
+
+    def begin(self) -> None:
+        announce(self.announce)
 
     def joint(self, setups, solve):
         return solve(lambda it, xs, info: self.writer.scalars(
             it, {k: v for k, v in info.items() if isinstance(v, float)}))
 
 
-def run_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> dict:
+def run_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False, announce: str | None = None) -> dict:
     """Reconstruct every frame of ``scene.frames`` jointly and write the run folder (module
-    doc); returns the combined metrics (views keyed ``NNNNNN/<view>``)."""
+    doc); returns the combined metrics (views keyed ``NNNNNN/<view>``). ``announce`` is printed
+    once every frame's checks have passed."""
     if resume:
         raise ConfigError("resume: a joint solve over scene.frames keeps no checkpoint; run it again")
     options = options_from_config(cfg)
@@ -93,7 +98,7 @@ def run_frames(cfg: DictConfig, run_dir: str | Path, resume: bool = False) -> di
     scenes = [load_scene(fcfg.scene) for fcfg in configs]
     writer = RunWriter(str(run_dir))
     try:
-        rec = reconstruct_frames(scenes, options, joint, LoggingHook(writer), device)
+        rec = reconstruct_frames(scenes, options, joint, LoggingHook(writer, announce), device)
         rec.record["frames"] = [numbers[0], numbers[-1]]
         combined: dict = {"heldout": {}, "train": {}, "frames": {}, "warnings": []}
         for t, fcfg, frame in zip(numbers, configs, rec.frames):

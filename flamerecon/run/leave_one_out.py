@@ -10,7 +10,9 @@ every fold, on that fold's training views only.
 
 from __future__ import annotations
 
+import logging
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -21,10 +23,13 @@ from flamerecon.evaluate.scores import render_scene_views, score_rendered, write
 from flamerecon.fit.build import build
 from flamerecon.fit.option_rules import check_options
 from flamerecon.fit.reconstruct import calibrated_scene, fit, warm_start
+from flamerecon.fit.refine_cameras import found_nothing
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.progress import Progress
 from flamerecon.run.config import options_from_config
 from flamerecon.scenes import Scene, SceneError, load_scene
+
+log = logging.getLogger(__name__)
 
 #: the per-view numbers averaged into the table's last row.
 AVERAGED = ("psnr", "ssim", "detail", "detail_silhouette", "psnr_black", "psnr_silhouette",
@@ -50,7 +55,7 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     views = list(views) if views else [v for v in scene.views if v not in exclude]
     if len(scene.views) - len(exclude) < 2:
         raise SceneError(f"leave-one-out: excluding {exclude} leaves fewer than two views of {scene.views}")
-    options = options_from_config(cfg)
+    options, kept = once_for_the_capture(options_from_config(cfg), scene, exclude, device)
     silhouette = options.silhouette.as_dict()
     rows = {}
     folds = Progress("leave-one-out", len(views), unit="fold")
@@ -75,8 +80,29 @@ def leave_one_out(cfg: DictConfig, out_dir: str | Path, views: list[str] | None 
     mean = {k: sum(r[k] for r in rows.values()) / len(rows) for k in AVERAGED}
     record = {"views": rows, "mean": mean, "exclude": exclude, "protocol": protocol(options),
               "config": OmegaConf.to_container(cfg, resolve=False)}
+    if kept:
+        record["calibration"] = kept
     write_json_atomic(out_dir / "loo.json", record)
     return record
+
+
+def once_for_the_capture(options, scene: Scene, exclude: list[str], device) -> tuple[object, str | None]:
+    """The options every fold runs with, and why the camera fit was left out of them (None
+    where it was not). The strict protocol fits each fold's training cameras without its
+    held-out one: a fit per fold. The fit of every camera (but ``exclude``) runs first, once
+    for the capture (or is read from its calibration file); where it found nothing to correct
+    (:func:`~flamerecon.fit.refine_cameras.found_nothing`) a fold's fit, on fewer cameras, has
+    nothing to find either, and every fold keeps the capture's cameras."""
+    c = options.calibration
+    if c.refine == "none" or c.file or c.rig:
+        return options, None
+    _, record = calibrated_scene(scene, options.replace(holdout=tuple(exclude)), device)
+    if not found_nothing(record["rounds"]):
+        return options, None
+    why = (f"the camera fit of all {len(scene.views) - len(exclude)} cameras found nothing to correct "
+           f"({record['rounds'][0]['stopped']}): every fold keeps the capture's cameras")
+    log.info("leave-one-out: %s", why)
+    return options.replace(calibration=replace(c, refine="none")), why
 
 
 def protocol(options) -> str:
@@ -105,4 +131,6 @@ def loo_table(record: dict) -> str:
     lines.append(f"  protocol: {record['protocol']} (each held-out camera "
                  + ("refined with the rig on calibration.frames, none of them scored)" if record["protocol"] != "strict"
                     else "as the calibration file gives it)"))
+    if record.get("calibration"):
+        lines.append(f"  cameras: {record['calibration']}")
     return "\n".join(lines)

@@ -70,17 +70,19 @@ def run_options(cfg: DictConfig) -> RunOptions:
     return RunOptions(**{field: node[key] for field, (node, key) in where.items() if key in node})
 
 
-def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None) -> dict:
+def reconstruct(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None,
+                announce: str | None = None) -> dict:
     """:func:`reconstruct_in` after checking every option of ``cfg``
     (:func:`~flamerecon.fit.option_rules.check_options`), holding ``run_dir``'s lock
     (:func:`~flamerecon.run.lock.run_lock`: a second writer is refused)."""
     check_options(OmegaConf.to_container(cfg, resolve=True))
     check_exporters(cfg.get("export", {}).get("formats", []))
     with run_lock(run_dir):
-        return reconstruct_in(cfg, run_dir, resume, watch)
+        return reconstruct_in(cfg, run_dir, resume, watch, announce)
 
 
-def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None) -> dict:
+def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, watch: Watch | None = None,
+                   announce: str | None = None) -> dict:
     """Run the whole reconstruction for ``cfg`` and write the run folder; returns metrics.json's
     dict.
 
@@ -91,7 +93,8 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     or a photometry refit). Raises :class:`~flamerecon.errors.Interrupted` after
     checkpointing on SIGINT/SIGTERM, and :class:`~flamerecon.errors.SolveDiverged` after
     writing the last good iterate's outputs (a coarse level that diverges writes none).
-    ``watch``: see :class:`~flamerecon.run.hook.RunHook`.
+    ``watch``: see :class:`~flamerecon.run.hook.RunHook`; ``announce``: printed once the
+    checks made before any work have passed (the runner's composed config).
     """
     if cfg.scene.get("frames") is not None:  # consecutive frames solved jointly (time as a prior)
         from flamerecon.run.joint_frames import run_frames
@@ -100,7 +103,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
             raise ConfigError("uncertainty.enabled: the confidence is computed for one frame's reconstruction, "
                               "not for scene.frames solved jointly; run the frames one by one, or leave it off")
 
-        return logged(run_frames(cfg, run_dir, resume))
+        return logged(run_frames(cfg, run_dir, resume, announce))
     options = options_from_config(cfg)
     core.check_solver_name(options.solver.name)
     run_dir, device = start_run(cfg, run_dir)
@@ -111,7 +114,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
     plan = [level.plan_entry() for level in core.levels_of(scene, options)]
     writer = RunWriter(str(run_dir))
     try:
-        hook = RunHook(run_dir, writer, run_options(cfg), plan, ckpt, watch)
+        hook = RunHook(run_dir, writer, run_options(cfg), plan, ckpt, watch, announce)
         rec = core.reconstruct(scene, options, hook, device)
         timing.update(rec.timing)
         if "solve" in timing:

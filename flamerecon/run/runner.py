@@ -104,7 +104,8 @@ def anchor_scene_root(cfg: DictConfig, start: str | Path) -> None:
 def config_block(cfg: DictConfig, run_dir: str | Path, overrides: list[str] | None) -> str:
     """The composed config's nodes that set a run apart, as YAML (scene, holdout, device, grid,
     solver, and debias, select and calibration when they are on), with the command line's
-    overrides and where the whole config is kept; printed when a run starts."""
+    overrides and where the whole config is kept; printed once the run's checks have passed
+    (:meth:`~flamerecon.fit.reconstruct.SolveHook.begin`): a refused command prints one line."""
     plain = OmegaConf.to_container(cfg, resolve=False)
     shown = {k: plain[k] for k in ("scene", "holdout", "device", "grid", "solver") if k in plain}
     if (plain.get("debias") or {}).get("method", "none") != "none":
@@ -117,6 +118,24 @@ def config_block(cfg: DictConfig, run_dir: str | Path, overrides: list[str] | No
     return (f"config (overrides: {' '.join(overrides or []) or 'none'}; all of it: "
             f"{Path(run_dir) / '.hydra' / 'config.yaml'}, or python train.py --cfg job):\n"
             + "\n".join(f"  {line}" for line in text.splitlines()))
+
+
+def as_the_command_line_says(cfg: DictConfig, overrides: list[str] | None, run_dir: str | Path) -> tuple[DictConfig, list[str]]:
+    """(``cfg``, notes): ``cfg`` as the command line's ``overrides`` mean it, before any work: an option given
+    that does nothing in the combination refused (:func:`~flamerecon.fit.option_rules.check_options`
+    with the keys given: ``uncertainty.scale=5`` without ``uncertainty.enabled``), and a preset's
+    rule that would override an option given dropped (:func:`~flamerecon.run.cli.as_given`;
+    ``.hydra/config.yaml`` rewritten to what runs, so that ``resume=`` goes on alike), and a line
+    for each rule dropped (printed with the config once the checks have passed)."""
+    from flamerecon.fit.option_rules import check_options, given_keys
+    from flamerecon.run.cli import as_given
+
+    check_options(OmegaConf.to_container(cfg, resolve=True), given_keys(overrides or []))
+    cfg, notes = as_given(cfg, overrides)
+    saved = Path(run_dir) / ".hydra" / "config.yaml"
+    if notes and saved.is_file():
+        atomic_write_text(saved, OmegaConf.to_yaml(cfg))
+    return cfg, notes
 
 
 def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
@@ -150,8 +169,8 @@ def run_task(cfg: DictConfig, run_dir: str | Path, multirun: bool = False,
             run_dir = resumed
         else:
             anchor_scene_root(cfg, start)
-            print(config_block(cfg, run_dir, overrides), flush=True)
-            metrics = reconstruct(cfg, run_dir)
+            cfg, notes = as_the_command_line_says(cfg, overrides, run_dir)
+            metrics = reconstruct(cfg, run_dir, announce="\n".join([config_block(cfg, run_dir, overrides), *notes]))
     except FlameReconError as err:
         if debug:
             raise

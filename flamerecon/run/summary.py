@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 from flamerecon.fit.reconstruct import mean_of
+from flamerecon.fit.refine_cameras import found_nothing
 
 
 def summary_table(metrics: dict) -> str:
@@ -55,18 +56,23 @@ def summary_table(metrics: dict) -> str:
     c = metrics.get("calibration")
     if c:
         fitted = f", fitted to frames {c['frames']}" if c.get("frames") else ""
+        held = (f"; held-out {c['heldout_psnr_before']:.2f} dB with the capture's cameras in the camera fit's "
+                "first solve" if math.isfinite(c.get("heldout_psnr_before", math.nan)) else "")
         rows.append((f"calibration ({c['refine']}{fitted})", (
-            f"training {c['train_psnr_before']:.2f} -> {c['train_psnr_after']:.2f} dB; held-out "
-            f"{c['heldout_psnr_before']:.2f} dB with the capture's cameras in the camera fit's "
-            "first solve (calibration.refine=none runs the whole pipeline)") if "train_psnr_before" in c else (
+            f"training {c['train_psnr_before']:.2f} -> {c['train_psnr_after']:.2f} dB{held} "
+            "(calibration.refine=none runs the whole pipeline)") if "train_psnr_before" in c else (
             f"training {c['train_psnr_after']:.2f} dB (calibration.score_before=true: also with the "
             "capture's own cameras, one more solve)")))
         rows.append(("  cameras", calibration_source(c)))
-        rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "
-                                f"focal x{r['focal_scale']:.4f}, principal point "
-                                f"({r['principal_point_px'][0]:+.2f}, {r['principal_point_px'][1]:+.2f}) px, "
-                                f"box moves {r['box_px']:.2f} px"))
-                 for name, r in c["cameras"].items()]
+        if found_nothing(c.get("rounds") or []):
+            rows.append(("  found", (f"nothing to correct: {c['rounds'][0]['stopped']}; the capture's cameras "
+                                     "are kept (calibration.refine=none skips the fit)")))
+        else:
+            rows += [(f"  {name}", (f"{r['rotation_deg']:.3f} deg, {r['translation']:.4g} world units, "
+                                    f"focal x{r['focal_scale']:.4f}, principal point "
+                                    f"({r['principal_point_px'][0]:+.2f}, {r['principal_point_px'][1]:+.2f}) px, "
+                                    f"box moves {r['box_px']:.2f} px"))
+                     for name, r in c["cameras"].items()]
     if "scene" in metrics:
         rows.append(("scene axes", scene_axes(metrics["scene"])))
     if "volume" in metrics:

@@ -52,14 +52,26 @@ def load_frame(scene: Scene, frame: int) -> Scene:
     return load_scene({**config, "frame": int(frame)})
 
 
-def capture_length(scene: Scene) -> int:
-    """How many frames every camera of the capture ``scene`` was read from holds (the fewest
-    over its cameras; :func:`~flamerecon.scenes.frames.source_length` of the files of
-    ``meta["files"]``), 1 for a scene without them (a synthetic one)."""
-    from flamerecon.scenes.frames import source_length
+def capture_frames(scene: Scene) -> list[int]:
+    """The frame numbers every camera of the capture ``scene`` was read from holds, in order
+    (:func:`~flamerecon.scenes.frames.source_frames` of the files of ``meta["files"]``, those
+    common to all; a camera given as one image holds every number), [0] for a scene without
+    files (a synthetic one). A SceneError names two cameras whose frame numbers do not meet."""
+    from flamerecon.scenes.frames import source_frames
 
-    files = scene.meta.get("files") or []
-    return min((source_length(f) for f in files), default=1)
+    common: set[int] | None = None
+    first = None
+    for file in scene.meta.get("files") or []:
+        found = source_frames(file)
+        if found is None:
+            continue
+        if common is not None and not common & set(found):
+            raise SceneError(f"{file}: holds frames {found[0]}-{found[-1]}, none of which {first} holds; the "
+                             "cameras of one capture hold the same frame numbers (rename the frames, or give "
+                             "calibration.frames=[...] the frames to fit the cameras to)")
+        common = set(found) if common is None else common & set(found)
+        first = first or file
+    return sorted(common) if common else [0]
 
 
 def load_downscaled(scene: Scene, downscale: int) -> Scene:
@@ -72,5 +84,5 @@ def load_downscaled(scene: Scene, downscale: int) -> Scene:
     return load_scene({**config, "downscale": int(downscale)})
 
 
-__all__ = ["SCENE_KEYS", "SCENE_LOADERS", "Scene", "SceneError", "capture_length", "load_downscaled", "load_frame", "load_scene", "register_built_in",
+__all__ = ["SCENE_KEYS", "SCENE_LOADERS", "Scene", "SceneError", "capture_frames", "load_downscaled", "load_frame", "load_scene", "register_built_in",
            "register_scene"]

@@ -11,8 +11,8 @@ from flamerecon.arguments import fields, one_or_many, tensor
 from flamerecon.errors import FlameReconError
 from flamerecon.geometry.axes import UP_AXES, axis_name
 from flamerecon.geometry.grid import VoxelGrid, checked_box
-from flamerecon.geometry.units import length_name
 from flamerecon.geometry.photometry import delinearize
+from flamerecon.geometry.units import length_name
 
 
 class SceneError(FlameReconError, ValueError):

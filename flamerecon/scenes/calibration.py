@@ -124,6 +124,14 @@ def check_image_size(
     :func:`~flamerecon.scenes.values.read_int` gives them)."""
     h, w = image.shape[:2]
     if (h, w) != (height, width):
+        from flamerecon.scenes.orientation import TURNS, exif_orientation
+
+        turn = exif_orientation(image_file) if image_file is not None else 1
+        if turn in (5, 6, 7, 8) and (w, h) == (height, width):
+            raise SceneError(
+                f"{image_file}: image is {w}x{h} (WxH) as displayed, its EXIF orientation {turn} ({TURNS[turn]}) "
+                f"applied, but {calib_file}: {field} says {width}x{height}, the size as stored: calibrate on the "
+                "images as displayed, or store them upright (exiftool -Orientation=1 -n FILE)")
         raise SceneError(
             f"{image_file}: image is {w}x{h} (WxH) but {calib_file}: {field} says {width}x{height}"
         )

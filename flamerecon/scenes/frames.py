@@ -8,8 +8,10 @@ A camera named ``NAME`` (or ``NAME.mp4``, as PINF's ``file_name`` writes it) fin
 - a video ``NAME.<ext>`` for the extensions above.
 
 Images come back as float32 arrays (H, W, C) in [0, 1], C = 1 (grayscale) or 3 (RGB);
-an alpha channel is composited over black (the emission model's empty background). A JPEG is
-read as displayed (its EXIF orientation applied, as ``cv2.imread`` and image viewers do); file
+an alpha channel is composited over black (the emission model's empty background). Every image
+is read as displayed: its EXIF orientation applied (JPEG, PNG, WebP, TIFF; as viewers and
+``cv2.imread`` show it, :mod:`flamerecon.scenes.orientation`), so the calibration must be of the
+images as displayed (a size that disagrees is refused naming the orientation); file
 extensions match in either case (``train00.MP4``); a 16-bit image holding only 8-bit values is
 refused (it would read 257 times too dark), and so is an OpenEXR frame this OpenCV cannot read,
 with the reason.
@@ -27,6 +29,7 @@ import numpy as np
 
 from flamerecon.native import native_stderr_silenced
 from flamerecon.scenes.base import SceneError
+from flamerecon.scenes.orientation import TURNS, displayed, exif_orientation
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".webm")
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".exr", ".pgm", ".ppm")
@@ -65,15 +68,19 @@ def read_image(path: str | Path) -> np.ndarray:
     if not path.is_file():
         refuse_link_loop(path)
         raise SceneError(f"{path}: image file not found")
-    as_displayed = path.suffix.lower() in (".jpg", ".jpeg")  # EXIF orientation applied; no alpha, 8 bits
-    flags = cv2.IMREAD_ANYCOLOR | cv2.IMREAD_ANYDEPTH if as_displayed else cv2.IMREAD_UNCHANGED
+    orientation = exif_orientation(path)
+    tiff = path.suffix.lower() in (".tif", ".tiff")  # OpenCV's TIFF decoder turns it itself (or fails)
     with native_stderr_silenced():  # libpng and friends print their own complaint
-        raw = cv2.imread(str(path), flags)
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # as stored: bit depth and alpha kept
     if raw is None or raw.size == 0:
         if path.suffix.lower() == ".exr" and openexr_missing():
             raise SceneError(f"{path}: {openexr_missing()}")
+        if tiff and orientation != 1:
+            raise SceneError(f"{path}: a TIFF whose orientation tag says {orientation} ({TURNS[orientation]}), which "
+                             f"this OpenCV ({cv2.__version__}) cannot read; save the frame upright (orientation 1) or "
+                             "as PNG")
         raise SceneError(f"{path}: cannot decode the image (corrupt file or unknown format)")
-    return _to_float_rgb(raw, path)
+    return _to_float_rgb(raw if tiff else displayed(raw, orientation), path)
 
 
 @functools.cache
@@ -156,9 +163,19 @@ def refuse_link_loop(*paths: str | Path) -> None:
             )
 
 
+def printable(name: str, where: str) -> str:
+    """``name`` (a camera's name, a path) when it holds no control character, else a SceneError
+    at ``where``: a NUL cannot be in a file name (the OS would refuse it in a ValueError)."""
+    if any(ord(ch) < 32 or ord(ch) == 127 for ch in str(name)):
+        raise SceneError(f"{where}: {str(name)!r} holds a control character (NUL, newline, tab, ...), which no file "
+                         "name here can hold; name it with printable characters only")
+    return name
+
+
 def frame_source(root: str | Path, name: str) -> Path:
     """The video file or frame folder holding camera ``name``'s frames under ``root``."""
     root = Path(root)
+    printable(name, f"{root}: camera name")
     direct = root / name
     stem = Path(name).stem if Path(name).suffix.lower() in VIDEO_EXTENSIONS else name
     refuse_link_loop(direct, root / stem, *(root / f"{stem}{ext}" for ext in VIDEO_EXTENSIONS))
@@ -191,21 +208,23 @@ def frame_file(folder: Path, frame: int) -> Path:
     raise SceneError(f"{folder}: frame {frame}: no file {frame:06d}.png there (it has {listing})")
 
 
-def source_length(path: str | Path) -> int:
-    """How many frames the source of a frame read from ``path`` holds: a video's frame count
-    (its container's, not decoded), the numbered images beside a frame of a frame folder, 1 for
-    an image on its own."""
+def source_frames(path: str | Path) -> list[int] | None:
+    """The frame numbers the source of a frame read from ``path`` holds, in order: 0 to a
+    video's frame count less one (its container's count, not decoded), the numbers of the
+    numbered images beside a frame of a frame folder (50, 51, 53: a gap stays a gap); None for
+    an image on its own, which any frame number reads."""
     path = Path(path)
     if path.suffix.lower() in VIDEO_EXTENSIONS:
         with native_stderr_silenced():
             cap = cv2.VideoCapture(str(path))
             try:
-                return max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 1)
+                return list(range(max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 1)))
             finally:
                 cap.release()
     if path.stem.isdigit():
-        return sum(1 for p in path.parent.iterdir() if p.stem.isdigit() and p.suffix.lower() in IMAGE_EXTENSIONS)
-    return 1
+        return sorted({int(p.stem) for p in path.parent.iterdir()
+                       if p.stem.isdigit() and p.suffix.lower() in IMAGE_EXTENSIONS})
+    return None
 
 
 def read_camera_frame(root: str | Path, name: str, frame: int) -> tuple[np.ndarray, Path]:
@@ -221,7 +240,7 @@ def read_path_frame(base: str | Path, relpath: str, frame: int) -> tuple[np.ndar
     """Frame ``frame`` of whatever ``relpath`` (relative to ``base``) names: an image file (the
     frame number is then ignored), an image named without its extension (NeRF's
     ``./train/r_0``), a video, or a folder of numbered frames."""
-    path = Path(base) / relpath
+    path = Path(base) / printable(relpath, f"{base}: image path")
     refuse_link_loop(path, *(path.with_name(path.name + ext) for ext in IMAGE_EXTENSIONS))
     if path.is_dir():
         file = frame_file(path, frame)

@@ -213,16 +213,26 @@ def _camera_list(root: Path, calibration) -> tuple[list[tuple[str, dict, Path, s
     return [(name, v, path, where) for name, v, where in items], data, path
 
 
+#: degrees by which a camera's R and rvec, both given, may differ (the rounding of a written file)
+R_RVEC_AGREE_DEG = 0.01
+
+
 def _pose(entry: dict, file, where: str) -> np.ndarray:
-    """OpenCV world->camera 4x4 from R or rvec, and t."""
+    """OpenCV world->camera 4x4 from R or rvec (both: they must be one rotation), and t."""
     key, R = _get(entry, "R")
+    r_key, rvec = _get(entry, "rvec")
     if R is not None:
         R = check_rotation(R, file, f"{where}{key}")
-    else:
-        key, rvec = _get(entry, "rvec")
-        if rvec is None:
-            raise SceneError(f"{file}: {where}R: missing (give R or rvec)")
-        R = cv2.Rodrigues(read_matrix(rvec, (3,), file, f"{where}{key}"))[0]
+    elif rvec is None:
+        raise SceneError(f"{file}: {where}R: missing (give R or rvec)")
+    if rvec is not None:
+        from_rvec = cv2.Rodrigues(read_matrix(rvec, (3,), file, f"{where}{r_key}"))[0]
+        if R is not None:
+            apart = np.degrees(np.arccos(np.clip((np.trace(R.T @ from_rvec) - 1) / 2, -1.0, 1.0)))
+            if apart > R_RVEC_AGREE_DEG:
+                raise SceneError(f"{file}: {where}{key} and {where}{r_key} disagree: they are rotations {apart:.3g} "
+                                 f"degrees apart; give one of them (or both of one rotation)")
+        R = from_rvec if R is None else R
     key, t = _get(entry, "t")
     w2c = np.eye(4)
     w2c[:3, :3] = R

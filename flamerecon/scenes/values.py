@@ -60,11 +60,16 @@ def read_float(value, file, field: str, check: Check = FINITE) -> float:
 
 
 def read_text(value, file, field: str) -> str:
-    """A non-empty string (a number, as an unquoted YAML name is, as its digits)."""
+    """A non-empty string of printable characters (a number, as an unquoted YAML name is, as its
+    digits): a name or path holding NUL, a newline or another control character is refused by
+    its field (no file name can hold NUL; the others would break the outputs' names)."""
     if isinstance(value, numbers.Integral) and not isinstance(value, bool):
         return str(value)
     if not isinstance(value, str) or not value:
         raise refuse(value, file, field, "a non-empty string")
+    if any(ord(ch) < 32 or ord(ch) == 127 for ch in value):
+        raise SceneError(f"{file}: {field}: {value!r} holds a control character (NUL, newline, tab, ...); write it "
+                         "with printable characters only")
     return value
 
 

@@ -14,12 +14,14 @@ images (held-out ones red, with their scores), the iso-surface and slices with a
 
 from __future__ import annotations
 
+import argparse
 import signal
 import socket
 import sys
 import threading
 
-from flamerecon.run.cli import at_least, run_script, script_parser
+from flamerecon.interrupt import STOP_SIGNALS
+from flamerecon.run.cli import run_script, script_parser
 
 
 def ssh_hint(port: int) -> str:
@@ -27,6 +29,19 @@ def ssh_hint(port: int) -> str:
     user_host = f"USER@{socket.gethostname() or 'HOST'}"
     return (f"on another machine: ssh -N -L {port}:localhost:{port} {user_host}, "
             f"then open http://localhost:{port} there")
+
+
+def port_number(text: str) -> int:
+    """argparse type of ``--port``: a whole number from 1 to 65535."""
+    from flamerecon.viewer.address import MAX_PORT
+
+    try:
+        number = int(text)
+    except ValueError:
+        number = 0
+    if not 1 <= number <= MAX_PORT:
+        raise argparse.ArgumentTypeError(f"got '{text}'; a port is a whole number from 1 to {MAX_PORT}")
+    return number
 
 
 def serve(viewer, stop: threading.Event) -> None:
@@ -41,8 +56,8 @@ def serve(viewer, stop: threading.Event) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = script_parser(__doc__, "flamerecon view")
     parser.add_argument("run_dir", help="a run folder (density.npz, .hydra/) or a multirun folder of them")
-    parser.add_argument("--port", type=at_least(1), default=8080, help="port to serve on (default 8080; "
-                        "the next free one if taken)")
+    parser.add_argument("--port", type=port_number, default=8080, help="port to serve on, 1-65535 (default "
+                        "8080; the next free one if taken)")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1, this "
                         "machine only: reach it from elsewhere by SSH port forwarding; 0.0.0.0 for every network)")
     parser.add_argument("--device", default="auto", help="where renders run: auto (CUDA when present), cpu, cuda")
@@ -50,13 +65,15 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
 
     def body() -> int:
+        from flamerecon.viewer.address import listen_address
         from flamerecon.viewer.server import Viewer
 
-        previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+        listen_address(args.host, args.port)  # a bad --host or --port before anything is loaded
+        print(f"flamerecon view: loading {args.run_dir} ...", flush=True)
+        # until it serves, a stop signal ends the command as in every script (one line, 130)
+        viewer = Viewer(args.run_dir, args.host, args.port, args.device)
+        previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
         try:
-            print(f"flamerecon view: loading {args.run_dir} ...", flush=True)
-            viewer = Viewer(args.run_dir, args.host, args.port, args.device)
             print(f"flamerecon view: open {viewer.url} in a browser ({len(viewer.frames)} frame(s))\n"
                   f"  {ssh_hint(viewer.port)}\n  Ctrl-C stops it", flush=True)
             serve(viewer, stop)

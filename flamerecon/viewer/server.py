@@ -30,6 +30,7 @@ from flamerecon.outputs.export import voxel_size
 from flamerecon.outputs.figures import brightest_index, to_display
 from flamerecon.outputs.mesh import DEFAULT_ISO, iso_surface
 from flamerecon.scenes.convert import quaternion_matrix
+from flamerecon.viewer.address import COMMAND_LINE, Fields, listen_address, start_viser
 from flamerecon.viewer.content import SCORE_KEYS, ViewFrame, frames_of
 
 #: seconds the camera must rest before the full-resolution render
@@ -241,19 +242,24 @@ class ClientView:
 class Viewer:
     """``flamerecon view``'s server on ``host:port`` (the next free port if that one is taken)
     for a Reconstruction, a loaded Run, a run folder or a multirun folder; :attr:`url` is where
-    a browser opens it, :meth:`stop` ends it. ``renders`` records every render sent."""
+    a browser opens it, :meth:`stop` ends it. ``renders`` records every render sent. The host
+    and port are checked before anything is loaded (:func:`~flamerecon.viewer.address.listen_address`;
+    ``fields``: their names in its messages), and viser is started so that a failure to listen
+    is a ConfigError, never a wait (:func:`~flamerecon.viewer.address.start_viser`)."""
 
     def __init__(self, source, host: str = "127.0.0.1", port: int = 8080, device: str = "auto",
-                 iso: float = DEFAULT_ISO, log=print) -> None:
+                 iso: float = DEFAULT_ISO, log=print, fields: Fields = COMMAND_LINE) -> None:
         viser = viser_module()
+        port = listen_address(host, port, fields)
         self.frames = frames_of(source, device)
         self.device = resolve_device(device, "view.device")
         self.log = log
         self.index, self.exposure, self.iso = 0, 0.0, float(iso)
         self.renders: list[RenderRecord] = []
         self.clients: dict[int, ClientView] = {}
+        self.broken: set[int] = set()  # frames whose failure to load was said once
         self.frame = self.frames[0]
-        self.server = viser.ViserServer(host=host, port=port, label="flamerecon", verbose=False)
+        self.server = start_viser(viser, host, listen_address(host, port, fields), fields)
         self.host = host
         self._gui()
         self.server.scene.set_up_direction(tuple(float(u) for u in self.frame.up))
@@ -267,8 +273,9 @@ class Viewer:
 
     @property
     def url(self) -> str:
-        host = "localhost" if self.host in ("127.0.0.1", "0.0.0.0", "::") else self.host
-        return f"http://{host}:{self.port}"
+        """Where a browser on this machine opens it (an IPv6 address in brackets)."""
+        host = "localhost" if self.host in ("127.0.0.1", "0.0.0.0", "::", "") else self.host
+        return f"http://[{host}]:{self.port}" if ":" in host else f"http://{host}:{self.port}"
 
     def stop(self) -> None:
         """Close every browser's render thread and the server."""
@@ -309,8 +316,20 @@ class Viewer:
     # -- the 3D scene ------------------------------------------------------------------------
 
     def _show_frame(self, index: int) -> None:
-        self.status.content = f"loading {self.frames.labels[index]} ..."
-        self.index, self.frame = index, self.frames[index]
+        """Show frame ``index``; one that cannot be loaded (its run folder broken while viewed)
+        leaves the last frame shown, says why in the panel and once in the log."""
+        label = self.frames.labels[index]
+        self.status.content = f"loading {label} ..."
+        try:
+            frame = self.frames[index]
+        except Exception as err:  # noqa: BLE001 - any failure of one frame; the server lives on
+            message = f"{label} cannot be shown: {' '.join(str(err).split()) or type(err).__name__}"
+            self.status.content = f"{message}; still showing {self.frames.labels[self.index]}"
+            if index not in self.broken:
+                self.broken.add(index)
+                self.log(f"flamerecon view: {message}")
+            return
+        self.index, self.frame = index, frame
         if len(self.frames) > 1:
             self.time_label.content = self.frames.labels[index]
         self.scores.content = scores_markdown(self.frame)

@@ -53,3 +53,15 @@ class CliRun:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.communicate()
+
+
+def refused_line(args: list[str], cwd, status: int = 2) -> str:
+    """The one line ``python train.py args`` prints when it refuses the command (run from
+    ``cwd``): it must exit with ``status`` and print nothing else, on stdout or stderr (no config,
+    no log line, no traceback before or after it)."""
+    proc = subprocess.run([sys.executable, str(REPO / "train.py"), *args], cwd=cwd, capture_output=True,
+                          text=True, env=repo_env(), timeout=300, check=False)
+    lines = [line for line in (proc.stdout + proc.stderr).splitlines() if line.strip()]
+    assert proc.returncode == status, proc.stdout + proc.stderr
+    assert len(lines) == 1 and proc.stderr.startswith("flamerecon: error: "), proc.stdout + proc.stderr
+    return lines[0]

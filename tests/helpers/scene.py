@@ -5,7 +5,6 @@ and :func:`tiny_cfg`, the tiny config on it with the :data:`~.config.FAST` solve
 from __future__ import annotations
 
 import dataclasses
-
 import functools
 
 import torch
