@@ -5,6 +5,7 @@ all-black floor, and (``--loo``) the leave-one-view-out mean over every camera.
         --method default= \
         --method previous="calibration.refine=none debias.method=none grid.resolution=96 solver.tv=0.03" \
         --method nnls="solver=fista solver.l1=0 solver.max_iters=100 calibration.refine=none debias.method=none" \
+        --method mart="solver=mart select.auto=false debias.method=none" \
         [scene=scalarflow by default, train.py overrides shared by every method ...]
 
 Each ``--method NAME=OVERRIDES`` is a train.py run with those overrides on top of the shared

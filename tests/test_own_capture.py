@@ -5,8 +5,8 @@ few degrees, a box too small and a pose given the wrong way round."""
 
 from __future__ import annotations
 
-import json
 import math
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from kornia.geometry.camera import PinholeCamera
 
 import flamerecon as fr
@@ -22,15 +23,16 @@ from flamerecon.geometry.cameras import opencv_w2c_to_opengl_c2w
 from flamerecon.scenes import SceneError
 from flamerecon.scenes.convert import colmap_to_opencv, pinf_to_opencv, write_calibration
 from tests.helpers import REPO, repo_env
+from tests.helpers.matlab_rig import BOX as RIG_BOX
+from tests.helpers.matlab_rig import write_rig
 from tests.helpers.views import (
     BOX,
-    HEIGHT,
     NAMES,
-    WIDTH,
     centred_K,
     random_images,
     ring_cameras,
-    write_png,
+    write_colmap,
+    write_pinf,
 )
 
 EXAMPLE = REPO / "examples" / "capture"
@@ -78,27 +80,10 @@ def test_the_example_is_the_synthetic_flame_as_its_own_capture():
 # --- converters -------------------------------------------------------------------------------
 
 
-def write_pinf(folder: Path, images: np.ndarray) -> None:
-    """A PINF info.json capture of the ring cameras (two held out), frames NAME/000000.png."""
-    w2c = ring_cameras(len(NAMES))
-    angle = 2 * math.atan(0.5 * WIDTH / centred_K()[0, 0])
-    entries = [{"file_name": f"{name}.mp4", "camera_hw": [HEIGHT, WIDTH], "camera_angle_x": angle,
-                "transform_matrix": opencv_w2c_to_opengl_c2w(w2c[v]).double().tolist()} for v, name in enumerate(NAMES)]
-    for v, name in enumerate(NAMES):
-        write_png(folder / name / "000000.png", images[v])
-    scale = np.subtract(BOX[1], BOX[0])
-    matrix = np.eye(4)
-    matrix[:3, 3] = BOX[0]
-    matrix = matrix[:, [2, 1, 0, 3]]  # PINF's column swap, undone by its loader
-    info = {"train_videos": entries[:2], "test_videos": entries[2:], "voxel_matrix": matrix.tolist(),
-            "voxel_scale": scale[[2, 1, 0]].tolist()}
-    (folder / "info.json").write_text(json.dumps(info))
-
-
 def test_pinf_converted_loads_as_the_pinf_loader_loads_it(tmp_path):
     write_pinf(tmp_path / "pinf", random_images(len(NAMES), 3))
     out = tmp_path / "converted" / "calibration.yaml"
-    record = pinf_to_opencv(tmp_path / "pinf" / "info.json", out)
+    record = pinf_to_opencv(tmp_path / "pinf" / "info.json", out).record
     write_calibration(out, record, "test")
     pinf = fr.load_scene("pinf", root=str(tmp_path / "pinf"))
     converted = fr.load_scene("opencv", root=str(out.parent))
@@ -120,32 +105,6 @@ def test_scalarflow_converted_is_scalarflow(tmp_path):
     assert converted.default_holdout == ["train02"] and converted.bbox_min == pinf.bbox_min
 
 
-def rotation_quaternion(R: np.ndarray) -> list[float]:
-    """(w, x, y, z) by scipy, independent of the converter's own quaternion code."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return [float(w), float(x), float(y), float(z)]
-
-
-def write_colmap(folder: Path, images: np.ndarray, model: str = "PINHOLE", params: str | None = None) -> Path:
-    """A COLMAP text model of the ring cameras (pixel centres at +0.5, as flamerecon's K) and
-    its images in folder/images/; returns the model folder."""
-    K = centred_K()
-    params = params or f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}"
-    model_dir = folder / "sparse" / "0"
-    model_dir.mkdir(parents=True)
-    (model_dir / "cameras.txt").write_text(f"# Camera list\n1 {model} {WIDTH} {HEIGHT} {params}\n")
-    lines = ["# Image list with two lines of data per image:"]
-    for v, w2c in enumerate(ring_cameras(len(NAMES)).numpy()):
-        q = rotation_quaternion(w2c[:3, :3])
-        lines += [f"{v + 1} {' '.join(map(repr, q))} {' '.join(map(repr, w2c[:3, 3].tolist()))} 1 {NAMES[v]}.png",
-                  "12.5 3.5 -1" if v % 2 else ""]
-        write_png(folder / "images" / f"{NAMES[v]}.png", images[v])
-    (model_dir / "images.txt").write_text("\n".join(lines) + "\n")
-    return model_dir
-
-
 def test_colmap_converted_has_the_cameras_written(tmp_path):
     model = write_colmap(tmp_path, random_images(len(NAMES), 3))
     proc = script("convert_capture.py", "colmap", model, tmp_path / "out" / "calibration.yaml",
@@ -160,7 +119,7 @@ def test_colmap_converted_has_the_cameras_written(tmp_path):
 
 def test_colmap_distortion_goes_into_opencvs_order(tmp_path):
     model = write_colmap(tmp_path, random_images(len(NAMES)), "OPENCV", "45 46 20.5 16.5 0.1 -0.02 0.001 0.002")
-    record = colmap_to_opencv(model, tmp_path / "images", tmp_path / "calibration.yaml")
+    record = colmap_to_opencv(model, tmp_path / "images", tmp_path / "calibration.yaml").record
     camera = record["cameras"][0]
     assert camera["dist"] == [0.1, -0.02, 0.001, 0.002]
     assert camera["K"] == [[45.0, 0.0, 20.0], [0.0, 46.0, 16.0], [0.0, 0.0, 1.0]]  # OpenCV's pixel convention
@@ -170,7 +129,7 @@ def test_colmap_distortion_goes_into_opencvs_order(tmp_path):
 @pytest.mark.parametrize("cameras, images, message", [
     ("1 FISHEYE 40 32 1 2 3", None, r"cameras.txt: line 1: camera model FISHEYE is not supported"),
     ("1 PINHOLE 40 32 45 45 20", None, r"cameras.txt: line 1: PINHOLE takes 4 parameters \(fx fy cx cy\), got 3"),
-    ("1 PINHOLE 40 32 45 45 20 x", None, r"cameras.txt: line 1: WIDTH HEIGHT PARAMS: expected numbers"),
+    ("1 PINHOLE 40 32 45 45 20 x", None, r"cameras.txt: line 1: PARAMS: expected numbers"),
     ("1 PINHOLE 40 32 45 45 20 16", "1 1 0 0 0 0 0 3 7 a.png\n", r"images.txt: line 1: CAMERA_ID 7 is not in"),
     ("1 PINHOLE 40 32 45 45 20 16", "1 1 0 0 0 0 0 3 1 a.png\n\n2 1 0 0 0 0 0 3 1 a.png\n",
      r"images.txt: line 3: camera name 'a' \(the image's stem\) appears twice"),
@@ -212,12 +171,53 @@ def test_the_check_passes_the_example_and_finds_a_turned_camera():
 def test_the_check_finds_a_small_box_and_an_inverted_pose():
     scene = fr.load_scene("opencv", root=str(EXAMPLE))
     small, _, _ = check_capture(scene, SILHOUETTE, bbox=[[-0.2, 0.3, -0.2], [0.2, 0.9, 0.2]])
-    assert all(any("outside the box's outline" in p for p in c.problems) for c in small)
+    assert all(any("outside the box's outline: enlarge the box" in p for p in c.problems) for c in small)
     extrinsics = scene.cameras.extrinsics.clone()
     extrinsics[1:3] = torch.linalg.inv(extrinsics[1:3])  # camera->world given where world->camera belongs
     inverted, _, _ = check_capture(with_cameras(scene, extrinsics), SILHOUETTE)
     assert "does not see the box" in inverted[1].problems[0] and "behind it" in inverted[2].problems[0]
     assert all("x_cam = R x_world + t" in c.problems[0] for c in inverted[1:3])
+
+
+def test_each_pose_hint_names_the_convention_it_fixes(tmp_path):
+    """On the MATLAB rig: a pose given camera->world is told to invert, one with OpenGL's axes
+    to invert and flip, a MATLAB postmultiply one to transpose R only (inverting would break it)."""
+    rig = write_rig(tmp_path, rendered=True, frames=(0,))
+    scene = fr.load_scene("opencv", root=str(rig["reference"].parent), bbox=[list(b) for b in RIG_BOX])
+    assert not [p for c in check_capture(scene, SILHOUETTE)[0] for p in c.problems]
+    extrinsics = scene.cameras.extrinsics.clone()
+    extrinsics[1] = torch.linalg.inv(extrinsics[1])
+    extrinsics[2] = opencv_w2c_to_opengl_c2w(extrinsics[2])
+    extrinsics[4, :3, :3] = extrinsics[4, :3, :3].T.clone()  # x_cam = x_world * R + t
+    checks, _, _ = check_capture(with_cameras(scene, extrinsics), SILHOUETTE)
+    said = {c.name: c.problems[0] for c in checks if c.problems}
+    assert "camera->world (Blender, NeRF without their axes)" in said["cam2"] and "invert it" in said["cam2"]
+    assert "with OpenGL's axes" in said["cam3"] and "flip its y and z" in said["cam3"]
+    assert "MATLAB's postmultiply rotation" in said["cam5"] and "transpose R only" in said["cam5"]
+    assert "enlarge the box" not in said["cam5"] and "invert" not in said["cam5"]
+
+
+def without_box(folder: Path) -> Path:
+    """A copy of the example capture whose calibration file gives no box."""
+    shutil.copytree(EXAMPLE, folder)
+    calibration = yaml.safe_load((folder / "calibration.yaml").read_text())
+    del calibration["bbox"]
+    (folder / "calibration.yaml").write_text(yaml.safe_dump(calibration))
+    return folder
+
+
+def test_a_box_the_loader_estimated_is_not_blamed_on_the_capture(tmp_path):
+    """Without a box the loader estimates one from the silhouettes: by default from masks like the
+    fit's, so that it holds them; estimated from narrower ones (Otsu's), the check puts the
+    silhouette outside it down to that estimate, not to a box the user never gave."""
+    capture = without_box(tmp_path / "capture")
+    checks, _, _ = check_capture(fr.load_scene("opencv", root=str(capture)), SILHOUETTE)
+    assert not [p for c in checks for p in c.problems]
+    narrow = fr.load_scene("opencv", root=str(capture), silhouette={"method": "otsu", "dilate_px": 2})
+    assert narrow.meta["bbox_source"] == "silhouette cones"
+    problems = [p for c in check_capture(narrow, SILHOUETTE)[0] for p in c.problems]
+    assert problems and all("the box the loader estimated (from scene.silhouette's masks)" in p for p in problems)
+    assert not any("enlarge the box" in p for p in problems)
 
 
 @pytest.mark.e2e
@@ -226,3 +226,17 @@ def test_the_check_script_prints_a_table_and_writes_its_picture(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "no problem found" in proc.stdout and "hull IoU" in proc.stdout
     assert (tmp_path / "capture_check.png").is_file()
+
+
+@pytest.mark.e2e
+def test_the_check_script_exits_1_on_a_problem_and_writes_beside_the_capture(tmp_path):
+    capture = tmp_path / "capture"
+    shutil.copytree(EXAMPLE, capture)
+    calibration = yaml.safe_load((capture / "calibration.yaml").read_text())
+    calibration["bbox"] = [[-0.2, 0.3, -0.2], [0.2, 0.9, 0.2]]  # too small
+    (capture / "calibration.yaml").write_text(yaml.safe_dump(calibration))
+    proc = script("check_capture.py", "scene=opencv", f"scene.root={capture}")
+    assert proc.returncode == 1, proc.stderr
+    assert "PROBLEMS (" in proc.stdout and proc.stdout.count("enlarge the box") == 5
+    assert f"picture: {capture / 'check' / 'capture_check.png'}" in proc.stdout
+    assert (capture / "check" / "capture_check.png").is_file() and not (REPO / "outputs" / "check").exists()

@@ -140,7 +140,7 @@ def test_lbfgsb_reaches_sklearn_objective(lasso_case):
 
 
 @pytest.mark.parametrize("name", ["fista", "fista_smooth", "tv", "lbfgsb", "pqn", "pqn_smooth",
-                                  "adam", "cgls", "sart", "ssnal"])
+                                  "adam", "cgls", "sart", "ssnal", "mart"])
 def test_every_iterative_solver_stops_at_the_first_check_past_its_time_budget(name):
     """max_seconds=0 is spent before the first check: the solve ends there, unconverged."""
     A, b, lam = tiny_problem()

@@ -2,6 +2,11 @@
 whether the box stands in front of it and holds its silhouette, and whether its silhouette
 agrees with the visual hull carved by the other cameras (a wrong pose or focal length shows as
 a low overlap); and one picture of all of it (``scripts/check_capture.py``, docs/own_capture.md).
+
+A camera that does not see the box has its pose read in the other conventions a calibration
+comes in (camera->world, OpenGL's axes, MATLAB's postmultiply rotation); the hint names the one
+that brings the box into view. What it cannot see: an error the silhouettes do not show, such
+as a principal point off by half a pixel or one (a 1-based one, as MATLAB's) at usual sizes.
 """
 
 from __future__ import annotations
@@ -24,7 +29,20 @@ from flamerecon.scenes import Scene
 LOW_IOU = 0.5
 #: above this share of a silhouette outside the box's outline, the box is too small
 OUTSIDE_SHARE = 0.05
-POSE_HINT = "are its R and t world->camera (x_cam = R x_world + t)? A camera->world pose must be inverted"
+POSE_HINT = ("are its R and t world->camera (x_cam = R x_world + t)? A camera->world pose must be inverted, a "
+             "MATLAB one (x_cam = x_world*R + t) only its R transposed (convert_capture.py does both)")
+#: the conventions a pose may have been written in by mistake: (what it was, what to do, the
+#: world->camera 4x4 it gives from the file's (4, 4) matrix M read as world->camera)
+MISREAD = (
+    ("camera->world (Blender, NeRF without their axes)", "invert it: R' = R^T, t' = -R^T t",
+     torch.linalg.inv),
+    ("camera->world with OpenGL's axes (y up, z backwards: NeRF, Blender)",
+     "invert it and flip its y and z axes (scene=nerf reads these)",
+     lambda M: torch.linalg.inv(M @ torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=M.dtype)))),
+    ("MATLAB's postmultiply rotation (x_cam = x_world*R + t)",
+     "transpose R only, t as it is (convert_capture.py matlab does it)",
+     lambda M: torch.cat([torch.cat([M[:3, :3].T, M[:3, 3:]], 1), M[3:]], 0)),
+)
 _EDGES = [(p, q) for p in range(8) for q in range(p + 1, 8) if (p ^ q).bit_count() == 1]
 
 
@@ -52,10 +70,13 @@ def box_corners(bbox_min, bbox_max) -> torch.Tensor:
 def check_capture(scene: Scene, silhouette: dict, bbox=None, resolution: int = 48
                   ) -> tuple[list[CameraCheck], torch.Tensor, torch.Tensor]:
     """Check every camera of ``scene`` (silhouettes by ``silhouette``, the options of
-    ``silhouette:``, unless the scene has masks; ``bbox`` [min, max], default the scene's): the
-    checks, the silhouettes (B, H, W) and each camera's footprint of the others' hull (B, H, W)."""
+    ``silhouette:``, unless the scene has masks; ``bbox`` [min, max], default the scene's, which
+    the loader may have estimated from the silhouettes itself: then a silhouette outside it is
+    put down to that estimate, not to a box the user gave): the checks, the silhouettes
+    (B, H, W) and each camera's footprint of the others' hull (B, H, W)."""
     masks = scene.masks if scene.masks is not None else silhouettes(scene.images, **silhouette)
     lo, hi = (bbox[0], bbox[1]) if bbox is not None else (scene.bbox_min, scene.bbox_max)
+    estimated = bbox is None and scene.meta.get("bbox_source") == "silhouette cones"
     grid = VoxelGrid.from_box(tuple(map(float, lo)), tuple(map(float, hi)), resolution)
     uv, depth = project_points(scene.cameras, box_corners(lo, hi))
     H, W = scene.image_size
@@ -77,20 +98,56 @@ def check_capture(scene: Scene, silhouette: dict, bbox=None, resolution: int = 4
         check = CameraCheck(name, area / (H * W), float((mask.numpy() & (outline == 0)).sum() / max(area, 1)),
                             float((mask & footprint).sum()) / union if union else 0.0, int((depth[v] <= 0).sum()))
         sees_box = bool(outline[: H, : W].any())
-        if check.behind:
-            check.problems.append(f"{check.behind} of the box's corners are behind it: {POSE_HINT}")
-        elif not sees_box:
-            check.problems.append(f"it does not see the box: {POSE_HINT}; or the box (grid.bbox) is elsewhere")
+        inside = 0.0 if check.behind or not sees_box else 1.0 - check.outside_box
+        misread = misreading(scene, v, lo, hi, mask, inside) if area and (
+            inside < 1.0 - OUTSIDE_SHARE or check.hull_iou < LOW_IOU) else None
+        if check.behind or not sees_box:
+            seen = (f"{check.behind} of the box's corners are behind it" if check.behind
+                    else "it does not see the box")
+            check.problems.append(f"{seen}: {misread or POSE_HINT}"
+                                  + ("" if check.behind or misread else "; or the box (grid.bbox) is elsewhere"))
         if area == 0:
             check.problems.append("its silhouette is empty: lower silhouette.threshold, or check the image")
         elif check.outside_box > OUTSIDE_SHARE and sees_box and not check.behind:
-            check.problems.append(f"{100 * check.outside_box:.0f}% of its silhouette lies outside the box's "
-                                  "outline: enlarge the box (grid.bbox, or bbox in the calibration file)")
+            share = f"{100 * check.outside_box:.0f}% of its silhouette lies outside the box's outline"
+            check.problems.append(
+                f"{share}: {misread}" if misread else
+                f"{share}: the box the loader estimated (from scene.silhouette's masks) is narrower than the "
+                "silhouettes the fit uses (silhouette:); give the box (bbox in the calibration file, or "
+                "grid.bbox), or set scene.silhouette as silhouette" if estimated else
+                f"{share}: enlarge the box (grid.bbox, or bbox in the calibration file)")
         if area and check.hull_iou < LOW_IOU:
             check.problems.append(f"its silhouette and the hull of the other cameras overlap by IoU "
                                   f"{check.hull_iou:.2f}: check its pose and focal length (or theirs)")
         checks.append(check)
     return checks, masks, torch.stack(footprints)
+
+
+def misreading(scene: Scene, view: int, lo, hi, mask: torch.Tensor, inside: float) -> str | None:
+    """What to do about camera ``view``'s pose when it is one of :data:`MISREAD`'s: the
+    misreading that, undone, puts the box in front of the camera and at least 80% of its
+    silhouette ``mask`` (H, W) inside the box's outline, a quarter more than ``inside`` (the
+    share as given); None when none does."""
+    H, W = scene.image_size
+    corners = box_corners(lo, hi).double()
+    given = scene.cameras.extrinsics[view].double()
+    K = scene.cameras.intrinsics[view, :3, :3].double()
+    best, best_share = None, max(0.8, inside + 0.25)
+    for what, fix, read in MISREAD:
+        w2c = read(given)
+        cam = corners @ w2c[:3, :3].T + w2c[:3, 3]
+        if not bool((cam[:, 2] > 0).all()):
+            continue
+        uv = (cam @ K.T)[:, :2] / cam[:, 2:]
+        outline = np.zeros((H, W), np.uint8)
+        cv2.fillConvexPoly(outline, cv2.convexHull(uv.numpy().round().astype(np.int32)), 1)
+        share = float((mask.numpy() & (outline > 0)).sum() / max(int(mask.sum()), 1))
+        if share >= best_share:
+            best, best_share = (what, fix), share
+    if best is None:
+        return None
+    return (f"its pose looks written as {best[0]}: read that way, {100 * best_share:.0f}% of its silhouette falls "
+            f"inside the box; {best[1]} (OpenCV's R and t: x_cam = R x_world + t)")
 
 
 def check_figure(scene: Scene, checks: list[CameraCheck], masks: torch.Tensor, footprints: torch.Tensor,

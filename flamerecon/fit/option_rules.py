@@ -280,7 +280,8 @@ RULES: dict[str, Rule] = {
     "solver.smooth": Rule(number(0)),
     "solver.max_voxels": Rule(integer(1), cap=_lars_voxels),
     "solver.memory": Rule(integer(1), cap=_fixed(MAX_MEMORY_PAIRS, "each pair holds two copies of the density")),
-    "solver.relax": Rule(number(0, 2, lo_open=True, hi_open=True)),
+    "solver.relax": Rule(number(0, 2, lo_open=True, hi_open=True)),  # mart: <= 1, its own check
+    "solver.order": Rule(choice("fixed", "shuffled")),
     "solver.tv": Rule(number(0)),
     "solver.dual_step": Rule(number(0, lo_open=True), null=True),
     "solver.reweight_rounds": Rule(integer(0), cap=_rounds),

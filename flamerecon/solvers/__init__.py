@@ -7,6 +7,7 @@ from flamerecon.solvers import (  # noqa: F401  (registers)
     fista_smooth,
     lars,
     lbfgsb,
+    mart,
     newton_cg,
     pqn,
     primal_dual_tv,

@@ -3,6 +3,7 @@ random 8-bit images (exact through PNG), with helpers that write it in each sour
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -10,7 +11,7 @@ import cv2
 import numpy as np
 import torch
 
-from flamerecon.geometry.cameras import look_at
+from flamerecon.geometry.cameras import look_at, opencv_w2c_to_opengl_c2w
 
 WIDTH, HEIGHT = 40, 32
 NAMES = ["cam00", "cam01", "cam02", "cam03"]
@@ -61,3 +62,46 @@ def write_video(path: Path, frames: np.ndarray, fourcc: str) -> bool:
 def as_float(images: np.ndarray) -> torch.Tensor:
     """uint8 (B, H, W, C) -> float (B, C, H, W) in [0, 1], as the loaders return."""
     return torch.from_numpy(images.astype(np.float32) / 255.0).permute(0, 3, 1, 2)
+
+
+def write_pinf(folder: Path, images: np.ndarray) -> None:
+    """A PINF info.json capture of the ring cameras (two held out), frames NAME/000000.png."""
+    w2c = ring_cameras(len(NAMES))
+    angle = 2 * math.atan(0.5 * WIDTH / centred_K()[0, 0])
+    entries = [{"file_name": f"{name}.mp4", "camera_hw": [HEIGHT, WIDTH], "camera_angle_x": angle,
+                "transform_matrix": opencv_w2c_to_opengl_c2w(w2c[v]).double().tolist()} for v, name in enumerate(NAMES)]
+    for v, name in enumerate(NAMES):
+        write_png(folder / name / "000000.png", images[v])
+    scale = np.subtract(BOX[1], BOX[0])
+    matrix = np.eye(4)
+    matrix[:3, 3] = BOX[0]
+    matrix = matrix[:, [2, 1, 0, 3]]  # PINF's column swap, undone by its loader
+    info = {"train_videos": entries[:2], "test_videos": entries[2:], "voxel_matrix": matrix.tolist(),
+            "voxel_scale": scale[[2, 1, 0]].tolist()}
+    (folder / "info.json").write_text(json.dumps(info))
+
+
+def rotation_quaternion(R: np.ndarray) -> list[float]:
+    """(w, x, y, z) by scipy, independent of the converter's own quaternion code."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return [float(w), float(x), float(y), float(z)]
+
+
+def write_colmap(folder: Path, images: np.ndarray, model: str = "PINHOLE", params: str | None = None) -> Path:
+    """A COLMAP text model of the ring cameras (pixel centres at +0.5, as flamerecon's K) and
+    its images in folder/images/; returns the model folder."""
+    K = centred_K()
+    params = params or f"{K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}"
+    model_dir = folder / "sparse" / "0"
+    model_dir.mkdir(parents=True)
+    (model_dir / "cameras.txt").write_text(f"# Camera list\n1 {model} {WIDTH} {HEIGHT} {params}\n")
+    lines = ["# Image list with two lines of data per image:"]
+    for v, w2c in enumerate(ring_cameras(len(NAMES)).numpy()):
+        q = rotation_quaternion(w2c[:3, :3])
+        lines += [f"{v + 1} {' '.join(map(repr, q))} {' '.join(map(repr, w2c[:3, 3].tolist()))} 1 {NAMES[v]}.png",
+                  "12.5 3.5 -1" if v % 2 else ""]
+        write_png(folder / "images" / f"{NAMES[v]}.png", images[v])
+    (model_dir / "images.txt").write_text("\n".join(lines) + "\n")
+    return model_dir
