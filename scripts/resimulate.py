@@ -7,15 +7,16 @@ every camera beside its own reconstruction.
 Frames FIRST..LAST are reconstructed with the train.py config (in turn, through the Python API)
 and a velocity fitted to each consecutive pair (``fr.estimate_flow``'s fit, warm-started; the
 ``flow.*`` keys set it). From frame FIRST's reconstruction alone the density is carried frame by
-frame along these velocities (projected divergence-free unless ``simulation.incompressible=false``;
+frame along these velocities (projected divergence-free with ``simulation.incompressible=true``;
 ``simulation.scheme=maccormack`` for MacCormack advection), the source re-injected each frame (in
 the bottom ``simulation.inflow`` of the box along up, where that frame's smoke is, the density
 becomes its reconstruction). Every frame is rendered in every camera and scored (PSNR, SSIM,
-detail per view; means over the held-out and the training views). Prints a line per frame, the
+detail per view; means over the held-out and the training views). Prints a line per frame (with
+how much smoke the re-simulation and the reconstruction hold, relative to frame FIRST's), the
 means over the frames after FIRST, the time per frame and the peak memory; ``--out`` writes
 ``{"table": {"resimulation": {"heldout_psnr": .., ...}, "reconstruction": {...}}, "per_frame":
 {"t": {"resimulation": {"views": {name: {"psnr": .., "ssim": .., "detail": ..}}, "heldout_psnr":
-.., ...}, "reconstruction": {...}}}, "flows": [...], "timing": {...}}``. ``--figures DIR`` draws
+.., ..., "total": ..}, "reconstruction": {...}}}, "flows": [...], "timing": {...}}``. ``--figures DIR`` draws
 every N-th frame's held-out views captured | re-simulated | reconstructed (with PSNR) and writes
 their re-simulated densities as a ``.vti`` series with a ``.pvd`` index (ParaView).
 """
@@ -84,11 +85,12 @@ def main(argv: list[str] | None = None) -> int:
         report = resimulate(lambda t: load_scene({**cfg.scene, "frame": t}), options, flow, first, last, simulation,
                             keep=lambda t: args.figures is not None and ((t - first) % args.every == 0 or t == last))
         print(f"{'frame':>5} {'re-simulated held-out dB':>25} {'train dB':>9} {'reconstruction held-out dB':>27} "
-              f"{'train dB':>9}")
+              f"{'train dB':>9} {'smoke / frame ' + str(first):>16} {'reconstructed':>14}")
+        totals = report.per_frame[first]["reconstruction"]["total"] or 1.0
         for t, row in report.per_frame.items():
             r, c = row["resimulation"], row["reconstruction"]
             print(f"{t:>5} {r['heldout_psnr']:25.2f} {r['train_psnr']:9.2f} {c['heldout_psnr']:27.2f} "
-                  f"{c['train_psnr']:9.2f}")
+                  f"{c['train_psnr']:9.2f} {r['total'] / totals:16.3f} {c['total'] / totals:14.3f}")
         for method, scores in report.table.items():
             print(f"mean over frames {first + 1}-{last}, {method}: held-out {scores['heldout_psnr']:.2f} dB / SSIM "
                   f"{scores['heldout_ssim']:.4f} / detail {scores['heldout_detail']:.3f}; training "

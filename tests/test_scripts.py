@@ -138,7 +138,8 @@ CALLS = {
                  r".*predictions_0001_k02_cam04\.png(.|\n)*written: .*simulation\.pvd")),
     "resimulate": (lambda t, run, dump: ["--frames", "0", "2", *PLUME, "--out", str(t / "new" / "r.json"), "--figures",
                                          str(t / "figures"), "--every", "2"],
-                   (r"    2 +\d+\.\d\d +\d+\.\d\d +\d+\.\d\d(.|\n)*mean over frames 1-2, resimulation: held-out "
+                   (r"    2 +\d+\.\d\d +\d+\.\d\d +\d+\.\d\d +\d+\.\d\d +\d+\.\d{3} +\d+\.\d{3}\n"
+                    r"(.|\n)*mean over frames 1-2, resimulation: held-out "
                    r"(.|\n)*written: .*resimulation_0002_cam04\.png(.|\n)*resimulation\.pvd")),
     "simulated_plume": (lambda t, run, dump: ["--frames", "16", "--pairs", "5", "5", "--window", "1", "--cells", "12",
                                               "16", "12", *SYNTHETIC, "--out", str(t / "new" / "s.json")],

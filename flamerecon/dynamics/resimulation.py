@@ -12,7 +12,9 @@ divergence-free where ``simulation.incompressible``, the density advected by
 becomes the frame's reconstruction there. Nothing else of the later reconstructions enters: what
 rises above the source is what the velocities carried there. Each frame is rendered in every
 camera and scored against the capture (PSNR, SSIM, detail per view; means over the held-out and
-the training views), beside the frame's own reconstruction.
+the training views), beside the frame's own reconstruction; ``total`` is each density summed over
+the grid (density x cells): how much smoke there is, which a transport alone cannot add to except
+through the source.
 """
 
 from __future__ import annotations
@@ -109,8 +111,8 @@ def resimulate(load: Callable[[int], Scene], options: ReconstructionOptions, flo
                 resimulated = smoke.transport(resimulated, pair.u.to(resimulated), frame.density)
             seconds["transport"].append(time.perf_counter() - clock)
         clock = time.perf_counter()
-        per_frame[t] = {"resimulation": camera_scores(resimulated, frame, silhouette),
-                        "reconstruction": camera_scores(frame.density, frame, silhouette)}
+        per_frame[t] = {name: {**camera_scores(d, frame, silhouette), "total": float(d.sum())}
+                        for name, d in (("resimulation", resimulated), ("reconstruction", frame.density))}
         seconds["scoring"].append(time.perf_counter() - clock)
         if keep(t):
             kept[t] = (frame, resimulated)
