@@ -96,6 +96,15 @@ def total_bytes() -> int | None:
     return max(found) if found else None
 
 
+def resident_bytes() -> int:
+    """This process's resident memory now, bytes (``/proc/self/statm``; the peak so far where
+    that file is missing)."""
+    try:
+        return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return int(peak_memory()["resident"] * 2**30)
+
+
 def peak_memory(device: torch.device | str = "cpu") -> dict[str, float]:
     """The process's peak memory so far, GiB: ``resident`` (the largest resident set, all
     devices' host memory; ``ru_maxrss``) and on CUDA ``device`` (torch's largest allocation)."""

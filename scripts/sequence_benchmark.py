@@ -6,7 +6,14 @@ iterations and held-out PSNR, SSIM and detail correlation, then frames per minut
         [--protocol run|hyfluid] [--out FILE.json] [scene=scalarflow by default, train.py overrides ...]
 
 Frames per minute counts everything a user waits for: loading the frame, the reconstruction
-(camera refinement included when the scene's default has it) and scoring it.
+(camera refinement included when the scene's default has it) and scoring it. Each frame also
+prints its CPU seconds (user + system, every thread: what a busy machine disturbs least) and
+the process's peak memory so far (and the GPU's peak of the frame on CUDA).
+
+The frames share their capture's region operator (``projector.reuse=true`` unless the overrides
+set it): the first frame assembles it, later ones take their rows and columns from it
+(flamerecon/fit/capture_operator.py); ``projector.reuse=false`` assembles each frame's own, the
+same operator entry for entry.
 
 ``--protocol hyfluid`` scores each frame as HyFluid scores ScalarFlow (flamerecon/evaluate/
 protocols.py): train02 held out, rendered at half resolution (540 x 960) whatever the resolution
@@ -27,10 +34,12 @@ import os
 import time
 
 import numpy as np
+import torch
 
 import flamerecon as fr
 from flamerecon.evaluate.protocols import PROTOCOLS, protocol_scores
 from flamerecon.fit.reconstruct import mean_of
+from flamerecon.machine import peak_memory
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.progress import duration
 from flamerecon.run.cli import at_least, compose_train, output_file, run_script, script_parser
@@ -58,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def run() -> None:
         overrides = list(args.overrides)
+        if not any(o.startswith("projector.reuse=") for o in overrides):
+            overrides.append("projector.reuse=true")
         if protocol is not None and not any(o.startswith("holdout=") for o in overrides):
             overrides.append(f"holdout=[{protocol.view}]")
         base = compose_train(overrides)
@@ -71,11 +82,13 @@ def main(argv: list[str] | None = None) -> int:
                  + (f", rows {protocol.rows[0]}-{protocol.rows[1]}, columns {protocol.cols[0]}-{protocol.cols[1]})"
                     if protocol.rows else ", full frame)") if protocol else "the run's own, at its working resolution"),
               flush=True)
-        print(f"{'frame':>5} {'load s':>7} {'recon s':>8} {'score s':>8} {'iters':>6} {'held-out dB':>12} "
-              f"{'SSIM':>7} {'detail':>7} {'train dB':>9}  done, left", flush=True)
+        print(f"{'frame':>5} {'load s':>7} {'recon s':>8} {'score s':>8} {'cpu s':>7} {'peak GiB':>9} {'iters':>6} "
+              f"{'held-out dB':>12} {'SSIM':>7} {'detail':>7} {'train dB':>9}  done, left", flush=True)
         previous, rows, per_frame, started = None, [], {}, time.perf_counter()
         for t in frames:
-            clock = time.perf_counter()
+            clock, cpu = time.perf_counter(), time.process_time()
+            if torch.cuda.is_available():
+                torch.cuda.reset_peak_memory_stats()
             scene = load_scene({**base.scene, "frame": t})
             loaded = time.perf_counter()
             rec = fr.reconstruct(scene, options, init=previous if args.warm else None)
@@ -88,26 +101,31 @@ def main(argv: list[str] | None = None) -> int:
                 held = protocol_scores(protocol, {**base.scene, "frame": t}, rec.scene, rec.setup.train,
                                        rec.density, rec.grid, rec.setup.step)
             scored = time.perf_counter()
+            memory = peak_memory(rec.setup.pixels.device)
+            peak = f"{memory['resident']:.2f}" + (f"/{memory['device']:.1f}" if "device" in memory else "")
             rows.append((loaded - clock, solved - loaded, scored - solved, rec.fit.result.iterations, held["psnr"],
                          held["ssim"], held["detail"], train))
             per_frame[str(t)] = {"psnr": held["psnr"], "ssim": held["ssim"], "detail": held["detail"],
                                  "train_psnr": train, "seconds": scored - clock, "reconstruction_seconds": solved - loaded,
-                                 "iterations": rec.fit.result.iterations}
+                                 "iterations": rec.fit.result.iterations, "cpu_seconds": time.process_time() - cpu,
+                                 "peak_memory_gib": memory}
             left = (time.perf_counter() - started) / len(rows) * (len(frames) - len(rows))  # the ETA
-            print(f"{t:5d} {rows[-1][0]:7.2f} {rows[-1][1]:8.2f} {rows[-1][2]:8.2f} {rows[-1][3]:6d} "
+            print(f"{t:5d} {rows[-1][0]:7.2f} {rows[-1][1]:8.2f} {rows[-1][2]:8.2f} {time.process_time() - cpu:7.1f} "
+                  f"{peak:>9} {rows[-1][3]:6d} "
                   f"{held['psnr']:12.2f} {held['ssim']:7.4f} {held['detail']:7.3f} {train:9.2f}  {len(rows)}/{len(frames)}, "
                   f"{duration(left)} left", flush=True)
             previous = rec.density.cpu()
             del rec, scene
         wall = time.perf_counter() - started
         data = np.array(rows)
-        print(f"mean  {data[:, 0].mean():7.2f} {data[:, 1].mean():8.2f} {data[:, 2].mean():8.2f} "
+        print(f"mean  {data[:, 0].mean():7.2f} {data[:, 1].mean():8.2f} {data[:, 2].mean():8.2f} {'':7} {'':9} "
               f"{data[:, 3].mean():6.0f} {data[:, 4].mean():12.2f} {data[:, 5].mean():7.4f} {data[:, 6].mean():7.3f} "
               f"{data[:, 7].mean():9.2f}")
         print(f"{len(frames)} frames in {wall:.1f} s wall: {60 * len(frames) / wall:.2f} frames per minute "
               f"(load average {os.getloadavg()[0]:.1f} at the end)")
         if args.out:
-            mean = {key: float(np.mean([f[key] for f in per_frame.values()])) for key in next(iter(per_frame.values()))}
+            mean = {key: float(np.mean([f[key] for f in per_frame.values()])) for key in next(iter(per_frame.values()))
+                    if key != "peak_memory_gib"}
             write_json_atomic(args.out, {"protocol": args.protocol, "overrides": overrides, "frames": per_frame,
                                          "mean": mean, "wall_seconds": wall})
             print(f"wrote {args.out}")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ import torch
 import flamerecon as fr
 from flamerecon.errors import ConfigError
 from flamerecon.fit import capture_calibration, reconstruct
+from flamerecon.fit.checks import check_before_work
 from flamerecon.fit.reconstruct import calibrated_scene
 from flamerecon.fit.refine_cameras import (
     N_PARAMS,
@@ -21,7 +23,7 @@ from flamerecon.fit.refine_cameras import (
     corrected_cameras,
     correction_report,
 )
-from flamerecon.geometry.cameras import K_of, camera_subset, make_cameras
+from flamerecon.geometry.cameras import K_of, camera_subset, make_cameras, resized_cameras
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.outputs.cameras_file import camera_records
 from flamerecon.outputs.export import load_density
@@ -131,3 +133,35 @@ def test_a_runs_cameras_json_given_as_calibration_file_is_read_and_said_so(tmp_p
         (c["K"], c["world_to_camera"], c["split"]) for c in cams[1]]
     densities = [load_density(tmp_path / run).density for run in ("first", "second")]
     np.testing.assert_array_equal(*densities)  # the same cameras solve to the same density
+
+
+def test_a_calibration_file_is_checked_before_the_work_at_the_images_it_is_read_with(scene, tmp_path):
+    """A ladder reads calibration.file on its coarsest rung's images (a full-resolution run with
+    the file the default 1/4 run wrote): the check before any work takes it at that size, and
+    refuses the scene's own size there."""
+    train, _ = scene.split(None)
+    H, W = scene.image_size
+    for name, cams in {"own": scene.cameras, "half": resized_cameras(scene.cameras, H // 2, W // 2)}.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps({"cameras": camera_records(scene.views, cams, train)}))
+    grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 8)
+    given = {name: options(file=str(tmp_path / f"{name}.json")) for name in ("own", "half")}
+    check_before_work(scene, given["own"], grid)
+    check_before_work(scene, given["half"], grid, read_at=2)
+    for opts, read_at in ((given["half"], None), (given["own"], 2)):
+        with pytest.raises(ConfigError, match=r"^calibration\.file: .* pixels \(height, width\), the scene's"):
+            check_before_work(scene, opts, grid, read_at)
+
+
+def test_reusing_the_captures_operator_does_not_key_its_calibration(scene):
+    """projector.reuse gives the same operator entry for entry, so a run with it off reads the
+    calibration file the default run wrote; the march's step, which changes the operator, is keyed."""
+    train, _ = scene.split(None)
+    grid = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 8)
+    base = options(refine="pose")
+
+    def key(**projector):
+        opts = base.replace(projector=replace(base.projector, **projector))
+        return capture_calibration.calibration_key(scene, train, grid, opts, CPU, {})
+
+    assert key(reuse=False) == key(reuse=True) == key(reuse="auto")
+    assert key(step=0.25) != key(step=0.5)

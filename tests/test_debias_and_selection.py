@@ -13,11 +13,17 @@ from hydra import compose, initialize_config_dir
 from flamerecon.errors import ConfigError
 from flamerecon.evaluate.scores import render_scene_views, score_views
 from flamerecon.fit.debias import DebiasOptions, debias, training_gain
-from flamerecon.fit.weight_selection import RowSubset, SelectionOptions, fold_views, row_subset, select_weights
-from flamerecon.operators.sparse import CsrOperator
+from flamerecon.fit.weight_selection import (
+    RowSubset,
+    SelectionOptions,
+    fold_views,
+    row_subset,
+    select_weights,
+)
 from flamerecon.geometry.cameras import camera_subset
 from flamerecon.geometry.hull import hull_footprint
 from flamerecon.operators.projector import render_image
+from flamerecon.operators.sparse import CsrOperator
 from flamerecon.run.pipeline import choose_weights, prepare, solve
 from flamerecon.scenes import load_scene
 from flamerecon.solvers import Problem, make_solver
@@ -108,8 +114,9 @@ def test_row_subset_passes_the_dot_test_and_keeps_the_rows(tiny):
 
 
 def test_an_assembled_operators_rows_are_sliced_out_with_the_same_products(tiny):
-    """row_subset of a CsrOperator: a CsrOperator of the rows kept, whose A x and A^T y equal
-    the full operator's restricted (forward) and zero-filled (adjoint) products bit for bit."""
+    """row_subset of a CsrOperator: a CsrOperator of the rows kept, whose A x equals the full
+    operator's restricted product bit for bit, and A^T y its zero-filled one (to float rounding
+    on the CPU's compiled adjoint: its partial sums run over fixed shares of the rows)."""
     _, _, setup = tiny
     A = setup.operator
     rows = torch.cat([torch.arange(0, A.shape[0] // 3), torch.arange(A.shape[0] // 2, A.shape[0], 2)])
@@ -120,7 +127,7 @@ def test_an_assembled_operators_rows_are_sliced_out_with_the_same_products(tiny)
     y = torch.rand(rows.numel(), 3, generator=g)
     view = RowSubset(A, rows)
     assert torch.equal(sub.forward(x), view.forward(x))
-    assert torch.equal(sub.adjoint(y), view.adjoint(y))
+    assert torch.allclose(sub.adjoint(y), view.adjoint(y), rtol=1e-6, atol=1e-7)
     assert sub.nnz < A.nnz
 
 

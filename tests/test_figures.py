@@ -264,7 +264,8 @@ def test_slices_pass_through_the_centre_of_mass_upright():
     assert centroid_index(vol) in ((3, 6, 1), (3, 5, 1))
     panels = slice_panels(vol[0], LO, HI, centroid_index(vol), up="y")
     # y upward in the vertical planes, every axis running forward
-    assert [(h, v) for _, h, v, _ in panels] == [((0, 1.0), (1, 1.0)), ((2, 1.0), (1, 1.0)), ((0, 1.0), (2, 1.0))]
+    # (the horizontal plane seen from above, +y towards the viewer: x to the right, -z upwards)
+    assert [(h, v) for _, h, v, _ in panels] == [((0, 1.0), (1, 1.0)), ((2, 1.0), (1, 1.0)), ((0, 1.0), (2, -1.0))]
     for plane, h, v, title in panels:
         assert plane.max() == 1.0, title  # every plane cuts the bar
         assert plane.shape == (vol.shape[3 - v[0]], vol.shape[3 - h[0]])  # rows along the vertical axis
@@ -412,3 +413,16 @@ def test_a_scene_turned_to_another_up_draws_the_same_top_view_slices_and_orbits(
     around = views_around(scene.truth, *box, n=4, width=24, height=16, columns=4)
     around2 = views_around(turned.truth, *box2, n=4, width=24, height=16, columns=4, up=up_vector(up))
     assert np.abs(around.astype(int) - around2.astype(int)).max() <= 2  # float noise of the renders
+
+
+@pytest.mark.parametrize("up", ["+y", "-y", "+z", "-x"])
+def test_the_horizontal_slice_is_seen_from_above_not_mirrored(up):
+    """Right by up in the picture, its viewer stands on the up side: right x up = the up axis."""
+    *_, (plane, h, v, _) = slice_panels(np.zeros((4, 5, 6), np.float32), np.zeros(3), np.ones(3), (1, 1, 1), up)
+
+    def vector(direction):
+        out = np.zeros(3)
+        out[direction[0]] = direction[1]
+        return out
+
+    np.testing.assert_array_equal(np.cross(vector(h), vector(v)), up_vector(up))

@@ -99,7 +99,8 @@ def tiny_setup():
 
     def with_data(density: torch.Tensor):
         return dataclasses.replace(setup, hull=every, voxel_index=torch.arange(m), operator=identity,
-                                   pixels=density.reshape(1, -1).T.contiguous(), row_view=None)
+                                   pixels=density.reshape(1, -1).T.contiguous(), row_view=None,
+                                   row_pixel=None)
 
     return with_data
 

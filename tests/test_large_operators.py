@@ -5,10 +5,12 @@ them. Cutting a problem into pieces must not change a single entry."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
-from flamerecon.operators import projector, sparse
+from flamerecon.operators import compiled, projector, residual_gradient, sparse
 from flamerecon.operators.projector import MatrixFreeOperator, assemble, assembled_memory
 from flamerecon.operators.sparse import CsrOperator, GrowingArray, transpose_csr
 from tests.helpers import random_coo, random_hull, random_rays
@@ -83,7 +85,8 @@ def test_the_size_estimate_counts_the_nonzeros_from_a_few_rays(monkeypatch, box_
     monkeypatch.setattr(projector, "ESTIMATE_RAYS", 300)  # every 10th ray
     est = assembled_memory(box_grid, rays, voxel_index)
     assert abs(est.nnz - nnz) <= 0.1 * nnz
-    assert est.operator_bytes >= 16 * est.nnz  # A and A^T: int32 column + float32 value each
+    # int32 column + float32 value a nonzero, A^T too where the adjoint needs it (not on the compiled CPU path)
+    assert est.copies == (1 if compiled.available("cpu") else 2) and est.operator_bytes >= 8 * est.copies * est.nnz
     assert est.peak_bytes > est.operator_bytes
     monkeypatch.setattr(projector, "ESTIMATE_RAYS", 10**6)  # every ray: exact
     assert assembled_memory(box_grid, rays, voxel_index).nnz == nnz
@@ -97,18 +100,112 @@ def test_a_stop_signal_inside_a_solve_ends_a_long_matrix_free_product_within_a_b
     rays = random_rays(box_grid, 300, seed=18)
     op = MatrixFreeOperator(box_grid, rays, random_hull(box_grid, seed=19))
     monkeypatch.setattr(projector, "CHUNK_SAMPLES", 100)  # dozens of blocks
+    monkeypatch.setattr(compiled, "BLOCK_SEGMENTS", 100)  # the same for the compiled forward march
     blocks = []
-    sample = projector._sample
 
-    def sampling(volume, coords):
-        blocks.append(1)
-        if len(blocks) == 3:
-            monkeypatch.setattr(interrupt, "_received", "SIGTERM")  # as the deferred handler records it
-        return sample(volume, coords)
+    def counted(march):
+        def marching(*args):
+            blocks.append(1)
+            if len(blocks) == 3:
+                monkeypatch.setattr(interrupt, "_received", "SIGTERM")  # as the deferred handler records it
+            return march(*args)
+        return marching
 
-    monkeypatch.setattr(projector, "_sample", sampling)
+    monkeypatch.setattr(projector, "_sample", counted(projector._sample))
+    for kernel in ("rows_forward", "rows_adjoint"):  # the compiled march's products
+        monkeypatch.setattr(compiled, kernel, counted(getattr(compiled, kernel)))
     for product in (op.forward, op.adjoint):
         blocks.clear()
         with pytest.raises(interrupt.Stopped, match="SIGTERM received"):
             product(torch.ones(op.shape[1 if product == op.forward else 0], 1))
         assert len(blocks) == 3  # stopped after the block the signal came in, not at the product's end
+
+
+needs_numba = pytest.mark.skipif(not compiled.available("cpu"), reason="numba is not installed: the torch path serves")
+
+
+@needs_numba
+@pytest.mark.parametrize("block", [37, 10**9])
+def test_the_compiled_assembly_is_the_torch_one_entry_for_entry(monkeypatch, box_grid, block):
+    rays = random_rays(box_grid, 500, seed=21)
+    voxel_index = random_hull(box_grid, seed=22)
+    monkeypatch.setattr(compiled, "BLOCK_SEGMENTS", block)  # many blocks, or one
+    fast = assemble(box_grid, rays, voxel_index)
+    monkeypatch.setattr(compiled, "numba", None)
+    slow = assemble(box_grid, rays, voxel_index)
+    assert slow.nnz > 1000 and fast.nnz == slow.nnz
+    assert torch.equal(fast.A.crow_indices(), slow.A.crow_indices())
+    assert torch.equal(fast.A.col_indices(), slow.A.col_indices())
+    assert torch.equal(fast.A.values(), slow.A.values())  # the same float operations, in march order
+
+
+@needs_numba
+@pytest.mark.parametrize(("threads", "channels"), [(1, 3), (2, 3), (2, 1), (2, 2)])  # 1 and 3: own paths
+def test_the_compiled_adjoint_reads_a_rows_and_stores_no_transpose(threads, channels):
+    op, matrix = random_coo(seed=5, N=300, M=80, nnz=4000)
+    y = torch.randn(300, channels, generator=torch.Generator().manual_seed(6))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        got = op.adjoint(y)
+    finally:
+        torch.set_num_threads(before)
+    assert not op.stores_transpose and op._AT is None  # A alone: half the operator's memory
+    assert torch.allclose(got.double(), torch.from_numpy(matrix).double().T @ y.double(), rtol=1e-5, atol=1e-5)
+    assert torch.equal(got, op.adjoint(y))  # the same sums whatever the threads: deterministic
+    assert torch.allclose(got, op.AT @ y, rtol=1e-5, atol=1e-5)  # A^T, built on demand, agrees
+
+
+@needs_numba
+@pytest.mark.parametrize("channels", [1, 3])
+def test_the_compiled_march_integrates_as_grid_sample_does(monkeypatch, box_grid, channels):
+    rays = random_rays(box_grid, 400, seed=23)
+    volume = torch.rand(channels, *box_grid.shape, generator=torch.Generator().manual_seed(24))
+    box = projector.support_box(box_grid, random_hull(box_grid, seed=25))
+    monkeypatch.setattr(compiled, "BLOCK_SEGMENTS", 50)  # many blocks
+    for narrowed in (None, box):
+        fast = projector.integrate_dense(volume, box_grid, rays, 0.5, narrowed)
+        with monkeypatch.context() as torch_path:
+            torch_path.setattr(compiled, "numba", None)
+            slow = projector.integrate_dense(volume, box_grid, rays, 0.5, narrowed)
+        assert fast.shape == (400, channels) and float(slow.abs().max()) > 0.1
+        assert torch.allclose(fast, slow, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3])
+def test_the_residual_and_its_gradient_in_one_pass_are_the_two_products(channels):
+    op, matrix = random_coo(seed=7, N=250, M=90, nnz=3000)
+    g = torch.Generator().manual_seed(8)
+    x, b = torch.rand(90, channels, generator=g), torch.rand(250, channels, generator=g)
+    r, grad = residual_gradient(op, x, b)
+    dense = torch.from_numpy(matrix).double()
+    expected_r = dense @ x.double() - b.double()
+    assert torch.allclose(r.double(), expected_r, rtol=1e-5, atol=1e-5)
+    assert torch.allclose(grad.double(), dense.T @ expected_r, rtol=1e-4, atol=1e-4)
+
+
+def test_the_geometric_bound_holds_the_assembled_operator(box_grid):
+    """The bound that spares the sampled estimate of a small operator is never below it."""
+    rays = random_rays(box_grid, 600, seed=41)
+    for seed in (42, 43):
+        voxel_index = random_hull(box_grid, seed=seed)
+        op = assemble(box_grid, rays, voxel_index)
+        stored = op.nbytes() * (1 if not op.stores_transpose else 2)
+        assert projector.assembled_bound(box_grid, rays, voxel_index) >= stored > 0
+        assert projector.assembled_bound(box_grid, rays, voxel_index) >= assembled_memory(box_grid, rays,
+                                                                                        voxel_index).peak_bytes
+
+
+def test_an_assembled_operator_that_does_not_fit_is_refused_with_the_ways_out(box_grid, caplog):
+    from flamerecon.errors import MemoryBudgetError
+    from flamerecon.fit.checks import choose_backend
+
+    rays, voxel_index = random_rays(box_grid, 600, seed=44), random_hull(box_grid, seed=45)
+    with pytest.raises(MemoryBudgetError, match=r"^projector\.backend=assembled: the assembled operator for 600 rays "
+                       r"x \d+ hull voxels needs about .* nonzeros.*use projector\.backend=matrix_free.*grid\.resolution"):
+        choose_backend("assembled", box_grid, rays, voxel_index, 0.5, torch.device("cpu"), 1000)
+    caplog.set_level("WARNING")
+    assert choose_backend("auto", box_grid, rays, voxel_index, 0.5, torch.device("cpu"), 1000, 50) == "matrix_free"
+    assert re.search(r"using the matrix-free backend, whose products march every ray again: about .* for 50 "
+                     r"iterations here\. To keep the assembled one: free memory or raise projector\.max_memory_gb",
+                     caplog.text)

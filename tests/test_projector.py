@@ -330,3 +330,29 @@ def test_a_camera_with_the_density_behind_its_centre_plane_keeps_every_pixel(box
     assert bool(footprint(volume[0] > 0, box_grid, cams).all())
     assert torch.equal(render_image(volume, box_grid, cams), full_march(volume, box_grid, cams))
     assert not footprint(torch.zeros(box_grid.shape, dtype=torch.bool), box_grid, cams).any()
+
+
+def test_a_render_takes_the_pixels_an_operator_rendered_and_marches_only_the_rest(box_grid, monkeypatch):
+    """The training views' silhouette pixels come from the assembled operator (A x: the march's
+    own weights), so a scoring render marches only the footprint's other pixels."""
+    from flamerecon.operators import projector
+
+    cams = ring_of_cameras(3, 40, 30, target=[0.2, 0.95, 1.375], focal=28.0)
+    voxel_index = random_hull(box_grid, seed=31)
+    x = torch.rand(voxel_index.numel(), 2, generator=torch.Generator().manual_seed(32))
+    volume = box_grid.dense(x, voxel_index)
+    full = render_image(volume, box_grid, cams)
+    masks = torch.zeros(3, 30, 40, dtype=torch.bool)
+    masks[:, 5:25, 8:30] = True  # the "silhouettes": the operator's rows
+    rays, flat = camera_rays(cams, masks)
+    known = (flat, assemble(box_grid, rays, voxel_index).forward(x))
+    marched = []
+    integrate = projector.integrate_dense
+    monkeypatch.setattr(projector, "integrate_dense", lambda v, g, r, *a, **k: (marched.append(len(r)),
+                                                                                 integrate(v, g, r, *a, **k))[1])
+    given = render_image(volume, box_grid, cams, known=known)
+    assert torch.allclose(given, full, rtol=1e-5, atol=1e-6)
+    seen = footprint(volume.abs().sum(0) > 0, box_grid, cams).reshape(-1)
+    rest = seen.clone()
+    rest[flat] = False
+    assert marched == [int(rest.sum())] and marched[0] < 0.5 * int(seen.sum())

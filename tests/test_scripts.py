@@ -128,6 +128,8 @@ CALLS = {
     "first_run": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC, "calibration.refine=pose",
                                         "calibration.frames=[2]", "calibration.rounds=1", "calibration.iterations=1"],
                   r"first run \(frame \d+, cameras fitted\): .* s wall .*, detail \d\.\d+;.*\nlater frame \(frame \d+, cameras read\): .*"),
+    "camera_fit_gain": (lambda t, run, dump: ["--sizes", "32x24:8:10"],
+                        r"exact .*\n +32x24 +8 +10 +-?\d+\.\d\d% +-?\d+\.\d\d% +-?\d+\.\d\d%"),
     "flow": (lambda t, run, dump: [str(run), "--figures", "1", "--no-vti"],
              r"frame +0 -> 1: residual .*\n.*frame +1 -> 2: .*\nwritten: velocity\.npz in 2 run folders"),
     "flow_benchmark": (lambda t, run, dump: ["--frames", "0", "2", *PLUME], r"3 frames, 2 frame pairs in .* the flow took"),

@@ -16,6 +16,7 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.fit import checks, workload
 from flamerecon.fit import reconstruct as core
+from flamerecon.fit.levels import Level
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import SolveHook
 from flamerecon.geometry.grid import VoxelGrid
@@ -34,15 +35,18 @@ def nothing(monkeypatch):
     pass
 
 
-REFUSED = {  # case: (overrides, patch, message)
-    "projector.max_memory_gb below what the images need": (["projector.max_memory_gb=3e-4"], nothing, (
-        r"^scene\.downscale: 5 views of 48x36 px give \d.* rays through the box, which need about .* KiB and "
-        r"a \d+x16x\d+ grid needs .*, in all .* KiB, but 314\.6 KiB is available on cpu; .*scene\.downscale.*"
-        r"grid\.resolution.*projector\.max_memory_gb$")),
-    "little memory free": ([], free(200_000), r"^scene\.downscale: .* but 156\.2 KiB is available on cpu"),
-    "a large grid on small images, together too much": (["grid.resolution=64", "projector.max_memory_gb=0.0083"], nothing,
-                                     (r"^grid\.resolution: a 43x64x43 grid needs about .* MiB for its dense arrays "
-                                     r"and 5 views of 48x36 px give")),
+REFUSED = {  # issue 38 family 2: case -> (overrides, patch, message); the option named is the one at fault
+    "projector.max_memory_gb below what the run adds": (["projector.max_memory_gb=3e-4"], nothing, (
+        r"^projector\.max_memory_gb: 5 views of 48x36 px on a \d+x16x\d+ grid need about .* more memory while "
+        r".* \(a peak of at most .*\), but it allows 314\.6 KiB; raise it \(this machine has .* free\) or shrink")),
+    "little memory free: the images and grid": ([], free(200_000), (
+        r"^(scene\.downscale|grid\.resolution): 5 views of 48x36 px on a .* grid need about .* more memory while .*, "
+        r"but 156\.2 KiB is available on cpu; try .*projector\.max_memory_gb$")),
+    "a large grid on small images": (["grid.resolution=64"], free(60 * MiB), (
+        r"^grid\.resolution: 5 views of 48x36 px on a 43x64x43 grid need about .* more memory while the (final grid "
+        r"is solved|result is scored) .* but 48\.0 MiB is available on cpu; try a larger scene\.downscale")),
+    "the camera fit's own grid": (["calibration.refine=pose", "calibration.resolution=160"], free(200 * MiB), (
+        r"^calibration\.resolution: .* more memory while the cameras are fitted .* try a coarser camera-fit grid")),
 }
 
 
@@ -59,7 +63,7 @@ def test_what_clearly_does_not_fit_is_refused_before_the_work(case, tmp_path, ca
 
 TOLD = {  # case: (patch, log level, message)
     "an ordinary run": (nothing, logging.INFO, (r"^estimate: \d.* rays, \d.* voxels, .* ray samples per pass: "
-                                               r"about .* of memory on cpu$")),
+                                               r"a peak of at most .* \(.* held now, .* more while .*\) on cpu$")),
     "a long one": (lambda mp: mp.setattr(workload, "LONG_RUN_SAMPLES", 10.0), logging.WARNING,
                    (r"^a large frame: 5 views of 48x36 px, .* ray samples per pass: the camera fit and each solve take "
                     r"minutes here; scene\.downscale=2 works on 1/4 of the pixels; a ladder \(ladder\.rungs=")),
@@ -98,9 +102,22 @@ def test_huge_images_on_a_tiny_grid(free_bytes, refused, monkeypatch, caplog):
     free(free_bytes)(monkeypatch)
     caplog.set_level(logging.INFO, logger="flamerecon.fit.workload")
     if refused:
-        with pytest.raises(checks.MemoryBudgetError, match=r"^scene\.downscale: 5 views of 4800x3600 px give"):
+        with pytest.raises(checks.MemoryBudgetError, match=r"^scene\.downscale: 5 views of 4800x3600 px on a 5x8x5 grid"):
             workload.check_workload(scene, options, grid, torch.device("cpu"))
         return
     found = workload.check_workload(scene, options, grid, torch.device("cpu"))
     assert found.rays > 10**7 and found.voxels < 1000
     assert f"estimate: {found} on cpu" in caplog.text
+
+
+@pytest.mark.parametrize(("downscale", "field"), [(2, "ladder.rungs"), (None, "grid.levels")])
+def test_a_level_that_does_not_fit_is_named_by_its_own_option(downscale, field, monkeypatch):
+    """A rung of the ladder (or a grid.levels entry) whose grid needs more than the final
+    grid's: the refusal names the option that made it, not grid.resolution."""
+    scene = tiny_synthetic()
+    options = ReconstructionOptions.from_dict({"device": "cpu", "grid": {"resolution": 16}})
+    fine = VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 16)
+    level = Level(VoxelGrid.from_box(scene.bbox_min, scene.bbox_max, 200), downscale, None)
+    free(100 * MiB)(monkeypatch)
+    with pytest.raises(checks.MemoryBudgetError, match=rf"^{re.escape(field)}: a 133x200x133 grid .* use a smaller"):
+        workload.check_workload(scene, options, fine, torch.device("cpu"), [level])

@@ -107,13 +107,15 @@ def native_scores(scene_cfg: Mapping, volume: torch.Tensor, grid: VoxelGrid, nam
     return out, (W, H)
 
 
-def render_scene_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float) -> torch.Tensor:
-    """Rendered images (len(views), C, H, W) of the density for the given view indices (none:
-    an empty batch)."""
+def render_scene_views(volume: torch.Tensor, grid: VoxelGrid, scene: Scene, views: list[int], step: float,
+                       known: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """Rendered images (len(views), C, H, W) of the density for the given view indices
+    (none: an empty batch; ``known``: pixels already rendered, see
+    :func:`~flamerecon.operators.projector.render_image`)."""
     if not views:
         return torch.zeros(0, volume.shape[0], *scene.image_size)
     cams = cameras_to(camera_subset(scene.cameras, views), volume.device)
-    return render_image(volume, grid, cams, step).cpu()
+    return render_image(volume, grid, cams, step, known).cpu()
 
 
 def view_psnr(rendered: torch.Tensor, scene: Scene, view: int) -> float:
@@ -193,13 +195,16 @@ def write_renders(run_dir: Path, rendered: torch.Tensor, scene: Scene, views: li
 
 def score(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
           step: float, silhouette: dict | None = None,
-          photometry: dict[str, tuple[float, float]] | None = None) -> tuple[dict, torch.Tensor]:
+          photometry: dict[str, tuple[float, float]] | None = None,
+          train_pixels: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[dict, torch.Tensor]:
     """Metrics of a density (C, nz, ny, nx): held-out and training views (with ``silhouette``
     options also inside the silhouette union; training renders through each camera's
     ``photometry`` (gain, offset) when given), volume errors against the truth when the
-    scene has one. Returns (metrics, held-out renders)."""
+    scene has one. ``train_pixels``: the training pixels the operator rendered
+    (:meth:`~flamerecon.fit.build.Setup.training_pixels`), not marched again. Returns
+    (metrics, held-out renders)."""
     held_imgs = render_scene_views(volume, grid, scene, holdout, step)
-    train_imgs = render_scene_views(volume, grid, scene, train, step)
+    train_imgs = render_scene_views(volume, grid, scene, train, step, train_pixels)
     if photometry:
         gain = torch.tensor([photometry[scene.views[v]][0] for v in train])
         offset = torch.tensor([photometry[scene.views[v]][1] for v in train])

@@ -15,6 +15,7 @@ from flamerecon.arguments import fields, instance, tensor, value, wrong_type, wr
 from flamerecon.device import resolve_device, set_threads
 from flamerecon.errors import ConfigError, FlameReconError
 from flamerecon.evaluate.metrics import resample_to
+from flamerecon.fit.capture_operator import capture_operator
 from flamerecon.fit.checks import (
     check_grid_memory,
     check_scene,
@@ -57,6 +58,23 @@ class Setup:
     seconds: float = 0.0  # wall time it took to build (hull, rays, operator)
     assembly_seconds: float = 0.0  # of which the operator (backend choice and assembly)
     options: ReconstructionOptions | None = None  # what it was built with (fit holds to them)
+    row_pixel: torch.Tensor | None = None  # (N,) long: each row's pixel b * H * W + v * W + u in the training views
+
+    def training_pixels(self, volume: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The training views' pixels the operator renders for a density (C, nz, ny, nx) on
+        the grid: their flat index into (T, H, W) (N,) and A x (N, C), so that a render
+        marches only the others (:func:`~flamerecon.operators.projector.render_image`'s
+        ``known``); None for a density with nonzeros off the hull (the operator does not see them)."""
+        if self.row_pixel is None:
+            return None
+        with torch.no_grad():
+            values = volume.detach().reshape(volume.shape[0], -1)
+            off = torch.ones(values.shape[1], dtype=torch.bool, device=values.device)
+            off[self.voxel_index.to(values.device)] = False
+            if bool(values[:, off].any()):
+                return None
+            x = values[:, self.voxel_index.to(values.device)].T.to(self.pixels)
+            return self.row_pixel, self.operator.forward(x).cpu()
 
     def __post_init__(self) -> None:
         fields(self)
@@ -72,6 +90,8 @@ class Setup:
         if tuple(int(n) for n in self.operator.shape) != (N, M):
             raise wrong_value("Setup.operator", self.operator.shape, f"of shape (N, M) = ({N}, {M}): pixels x hull voxels")
         tensor("Setup.row_view", self.row_view, "(N,) training view of each pixel row", shape=(N,),
+               kind="integer", null=True)
+        tensor("Setup.row_pixel", self.row_pixel, "(N,) training pixel of each row", shape=(N,),
                kind="integer", null=True)
         value("Setup.step", self.step, number(0, lo_open=True))
 
@@ -132,11 +152,16 @@ def build(scene: Scene, options: ReconstructionOptions, device: torch.device | s
     row_view = flat // (images.shape[-2] * images.shape[-1])
     step = float(options.projector.step)
     assembly = time.perf_counter()
-    backend = choose_backend(options.projector.backend, grid, rays, voxel_index, step, device, budget)
-    operator = make_operator(backend, grid, rays, voxel_index, step)
+    backend = choose_backend(options.projector.backend, grid, rays, voxel_index, step, device, budget,
+                             options.solver.params.get("max_iters"))
+    operator = None
+    if backend == "assembled":  # the capture's region operator, where it serves
+        operator = capture_operator(cams, grid, masks[train], rows, hull, step, options)
+    if operator is None:
+        operator = make_operator(backend, grid, rays, voxel_index, step)
     now = time.perf_counter()
     return Setup(scene, train, holdout, grid, masks, hull, voxel_index, operator, pixels, step, row_view,
-                 now - started, now - assembly, options)
+                 now - started, now - assembly, options, flat.cpu())
 
 
 def check_inputs(where: str, scene: Scene, options: ReconstructionOptions | None, device) -> None:

@@ -116,6 +116,7 @@ def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: Re
     fit_options = {k: v for k, v in options.as_dict().items() if k not in UNKEYED}
     fit_options["calibration"] = {k: v for k, v in fit_options["calibration"].items()
                                  if k not in ("folder", "file", "resolution", "score_before")}  # the grid is keyed
+    fit_options["projector"] = {k: v for k, v in fit_options["projector"].items() if k != "reuse"}  # same operator
     return {
         "views": [scene.views[v] for v in train],
         "images": digest(images),

@@ -21,8 +21,16 @@ from flamerecon.geometry.hull import carve_counts
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
 from flamerecon.machine import available_bytes, format_bytes
-from flamerecon.operators.projector import Rays, assembled_memory, march_box, ray_box
+from flamerecon.operators.projector import (
+    Rays,
+    assembled_bound,
+    assembled_memory,
+    march_box,
+    matrix_free_seconds,
+    ray_box,
+)
 from flamerecon.outputs.cameras_file import cameras_from_records, read_camera_file
+from flamerecon.progress import duration
 from flamerecon.scenes import Scene, SceneError
 
 if TYPE_CHECKING:
@@ -105,12 +113,15 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
         raise SceneError(f"{where}: view '{scene.views[i]}': the camera does not see the box {lo}..{hi}; {fix}")
 
 
-def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid) -> None:
+def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid,
+                      read_at: int | None = None) -> None:
     """What a reconstruction of ``scene`` with ``options`` on ``grid`` refuses before any work
     (each refusal one line): the split (``holdout``), a confidence asked for with fewer than two
-    training cameras, a ``calibration.file`` that cannot give the training cameras, the cameras
-    against the box (:func:`check_scene`) and the training views' silhouettes
-    (:func:`check_silhouettes`); the build checks them again on each level."""
+    training cameras, a ``calibration.file`` that cannot give the training cameras (at the
+    images it is read with: the scene's, or with ``read_at`` the ladder's coarsest rung's, that
+    downscale of the capture), the cameras against the box (:func:`check_scene`) and the
+    training views' silhouettes (:func:`check_silhouettes`); the build checks them again on
+    each level."""
     train, _ = scene.split(None if options.holdout is None else list(options.holdout))
     if options.uncertainty.enabled and len(train) < 2:
         raise ConfigError(
@@ -119,8 +130,12 @@ def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelG
             f"this run trains on {len(train)}; hold out fewer cameras (holdout=...), or leave uncertainty off")
     if options.calibration.file is not None:  # read (and refused) before any work, as the run reads it later
         path = options.calibration.file
-        cameras_from_records(read_camera_file(path)["cameras"], scene.views, scene.cameras.height,
-                             scene.cameras.width, f"calibration.file: {path}")
+        height, width = scene.cameras.height, scene.cameras.width
+        if read_at is not None:  # the capture's pixels (scene.downscale's factor back) over the rung's
+            own = int((scene.meta.get("config") or {}).get("downscale") or 1)
+            height, width = (torch.div(size * own, read_at, rounding_mode="floor") for size in (height, width))
+        cameras_from_records(read_camera_file(path)["cameras"], scene.views, height, width,
+                             f"calibration.file: {path}")
     check_scene(scene, grid)
     masks = scene.masks
     if masks is None:
@@ -187,34 +202,41 @@ def check_grid_memory(grid: VoxelGrid, n_views: int, device: torch.device, budge
 
 def choose_backend(
     requested: str, grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float,
-    device: torch.device, budget: int | None,
+    device: torch.device, budget: int | None, iterations: int | None = None,
 ) -> str:
     """``projector.backend`` to use: ``auto`` is ``assembled`` when its estimated peak memory
-    fits in ``budget`` bytes, else ``matrix_free``; an explicit ``assembled`` that would not fit
-    is refused with the figures and the alternatives."""
+    fits in ``budget`` bytes, else ``matrix_free``, told with its expected time for
+    ``iterations`` (:func:`~flamerecon.operators.projector.matrix_free_seconds`) and the ways out; an
+    explicit ``assembled`` that would not fit is refused with the figures and the alternatives."""
     if requested == "matrix_free":
         return requested
     if requested not in ("auto", "assembled"):
         raise ConfigError(
             f"projector.backend: unknown backend '{requested}'; use auto, assembled or matrix_free"
         )
+    most = assembled_bound(grid, rays, voxel_index, step)
+    if most < LOUD_OPERATOR_BYTES and (budget is None or most <= budget):
+        return "assembled"  # surely small enough: no sampled estimate needed
     est = assembled_memory(grid, rays, voxel_index, step)
     if budget is None or est.peak_bytes <= budget:
         if est.peak_bytes >= LOUD_OPERATOR_BYTES:
-            log.info("operator: %d rays x %d hull voxels, about %.3g nonzeros: %s for A and A^T (%s while it "
+            log.info("operator: %d rays x %d hull voxels, about %.3g nonzeros: %s for %s (%s while it "
                      "is assembled)", len(rays), int(voxel_index.numel()), est.nnz, format_bytes(est.operator_bytes),
-                     format_bytes(est.peak_bytes))
+                     est.stored, format_bytes(est.peak_bytes))
         return "assembled"
     figure = (
         f"the assembled operator for {len(rays)} rays x {int(voxel_index.numel())} hull voxels "
-        f"needs about {format_bytes(est.operator_bytes)} (~{est.nnz:.3g} nonzeros, A and A^T) and "
+        f"needs about {format_bytes(est.operator_bytes)} (~{est.nnz:.3g} nonzeros, {est.stored}) and "
         f"about {format_bytes(est.peak_bytes)} while it is built, but {format_bytes(budget)} is "
         f"available on {device}"
     )
     if requested == "auto":
+        seconds = matrix_free_seconds(rays, grid, step, voxel_index, iterations or 100, torch.get_num_threads())
         log.warning("projector.backend=auto: %s; using the matrix-free backend, whose products march every ray "
-                    "again (150-300x an assembled product's time; its step comes from a 3-product bound): keep its "
-                    "iterations few (a ladder, ladder.rungs, solves coarser levels first)", figure)
+                    "again: about %s for %d iterations here. To keep the assembled one: free memory or raise "
+                    "projector.max_memory_gb, or shrink the operator (scene.downscale, grid.resolution); or keep the "
+                    "iterations few (a ladder, ladder.rungs, solves coarser levels first)", figure,
+                    duration(seconds), iterations or 100)
         return "matrix_free"
     nx, ny, nz = grid.resolution
     raise MemoryBudgetError(

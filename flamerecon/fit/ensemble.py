@@ -93,7 +93,8 @@ def solve_ensemble(setup, options, x: torch.Tensor, uncertainty: UncertaintyOpti
         for k, v in enumerate(setup.train):
             rows = (setup.row_view != k).nonzero().squeeze(1)
             fold = replace(setup, operator=row_subset(setup.operator, rows), pixels=setup.pixels[rows].contiguous(),
-                           row_view=setup.row_view[rows])
+                           row_view=setup.row_view[rows],
+                           row_pixel=None if setup.row_pixel is None else setup.row_pixel[rows])
             plans.append((f"cameras:{setup.scene.views[v]}", fold, base))
     if "weights" in kinds:
         for label, change in weight_variants(base.solver, float(uncertainty.weight_factor)):

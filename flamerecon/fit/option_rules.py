@@ -182,6 +182,7 @@ RULES: dict[str, Rule] = {
     "projector.step": Rule(number(0.01)),  # voxels; finer only multiplies samples (and memory)
     "projector.max_memory_gb": Rule(number(0, lo_open=True), null=True, cap=_memory_gb),
     "projector.rays": Rule(choice("silhouette", "hull")),
+    "projector.reuse": Rule(either(choice("auto"), boolean)),
     "debias.method": Rule(choice("none", "gain", "refit")),
     "debias.iterations": Rule(integer(1), cap=_iterations),
     "calibration.refine": Rule(choice("none", "pose", "pose+intrinsics")),

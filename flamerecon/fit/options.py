@@ -55,12 +55,15 @@ class GridOptions:
 class ProjectorOptions:
     """``backend``: assembled | matrix_free | auto; ``step``: ray-march segment in voxels;
     ``rays``: silhouette | hull (also the background pixels whose ray meets the hull);
-    ``max_memory_gb``: what the operator may take (None: 80% of the device's free memory)."""
+    ``max_memory_gb``: what the operator may take (None: 80% of the device's free memory);
+    ``reuse``: the capture's region operator (:mod:`~flamerecon.fit.capture_operator`): ``auto``
+    reads one that holds the frame, ``true`` also builds one (a sequence), ``false`` neither."""
 
     backend: str = "auto"
     step: float = 0.5
     rays: str = "silhouette"
     max_memory_gb: float | None = None
+    reuse: bool | str = "auto"
 
     def __post_init__(self) -> None:
         check_section("projector", self)

@@ -176,6 +176,7 @@ class Reconstruction:
     levels: list[dict] = field(default_factory=list)  # one record per grid (with grid.levels)
     calibration: dict | None = None  # the camera refinement's record
     timing: dict = field(default_factory=dict)  # wall seconds per step
+    memory_bound: int | None = None  # bytes: the bound of the process's peak told before the work
 
     def __post_init__(self) -> None:
         fields(self)
@@ -206,7 +207,8 @@ class Reconstruction:
         ``warnings`` (:func:`~flamerecon.evaluate.result_warnings.result_warnings`)."""
         photometry = self.fit.photometry.per_view(self.setup) if self.fit.photometry else None
         metrics, _ = score(self.scene, self.density, self.grid, self.setup.train, self.setup.holdout,
-                           self.setup.step, self.options.silhouette.as_dict(), photometry)
+                           self.setup.step, self.options.silhouette.as_dict(), photometry,
+                           self.setup.training_pixels(self.density))
         metrics["warnings"] = result_warnings(
             self.scene, self.density, {**metrics, "calibration": self.calibration}, self.setup.train + self.setup.holdout,
             *penalty_of(self.options.solver.as_dict(), self.fit.l1), train=self.setup.train, step=self.setup.step,
@@ -473,6 +475,8 @@ def calibrated_scene(scene: Scene, options: ReconstructionOptions, device: torch
     # cameras' errors into them (held-out train02, ScalarFlow frame 35: 31.84 dB against 33.23
     # with the gain), so they keep the penalised structure, only its level debiased
     fitting = options.replace(debias=DebiasOptions("gain")) if options.debias.method == "refit" else options
+    # the cameras change at every round of the fit: their operators are not kept (projector.reuse)
+    fitting = fitting.replace(projector=replace(fitting.projector, reuse=False))
 
     def capture_choice(cameras, sources: list[Scene], which: str) -> dict | None:
         """With select.auto: the selection record of the weights whose leave-one-view-out
@@ -614,8 +618,9 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     volume = None if resumed is not None else init
     if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, levels[0].grid if levels else fine, int(scene.images.shape[1]))
-    check_before_work(scene, options, fine)
-    check_workload(scene, options, fine, device)
+    rungs = [level.downscale for level in levels if level.downscale is not None]
+    check_before_work(scene, options, fine, rungs[0] if rungs else None)  # the file is read on the coarsest rung
+    bound = check_workload(scene, options, fine, device, levels).bytes
     hook.begin()
     timing: dict = {}
     clock = time.perf_counter()
@@ -645,4 +650,4 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     timing.update(found.seconds)
     if levels:
         records.append(level_record(setup, found.l1, found.result))
-    return Reconstruction(scene, setup, found, records, calibration, timing)
+    return Reconstruction(scene, setup, found, records, calibration, timing, bound)

@@ -1,10 +1,11 @@
 """What every operator offers: the :class:`LinearOperator` protocol, the dot test that proves an
-adjoint, and the operator norm by power iteration, computed once per operator."""
+adjoint, and the operator norm (Lanczos), computed once per operator."""
 
 from __future__ import annotations
 
 from typing import Protocol
 
+import numpy as np
 import torch
 
 
@@ -19,6 +20,24 @@ class LinearOperator(Protocol):
     def forward(self, x: torch.Tensor) -> torch.Tensor: ...
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor: ...
+
+
+def residual_gradient(op: LinearOperator, x: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """r = A x - b (N, C) and the data term's gradient A^T r (M, C), by the operator's own
+    ``residual_gradient`` where it has one (the assembled operator reads A once for both)."""
+    fused = getattr(op, "residual_gradient", None)
+    if fused is not None:
+        return fused(x, b)
+    r = op.forward(x) - b
+    return r, op.adjoint(r)
+
+
+def normal_product(op: LinearOperator, v: torch.Tensor) -> torch.Tensor:
+    """A^T A v (M, C), in one pass over an assembled A (its fused residual and gradient, b = 0)."""
+    fused = getattr(op, "residual_gradient", None)
+    if fused is None:
+        return op.adjoint(op.forward(v))
+    return fused(v, v.new_zeros(op.shape[0], v.shape[1]))[1]
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -55,8 +74,9 @@ COSTLY_NORM_ITERS = 3
 
 def norm_sq(op: LinearOperator, device=None, dtype: torch.dtype = torch.float32,
             iters: int = 30, seed: int = 0) -> float:
-    """||A||_2^2 (largest eigenvalue of A^T A) by ``iters`` power iterations from a uniform
-    random start drawn from ``seed``, in ``dtype`` on ``device``; for an operator with
+    """||A||_2^2 (largest eigenvalue of A^T A) by at most ``iters`` Lanczos steps
+    (:func:`_lanczos`) from a uniform random start drawn from ``seed``, in ``dtype`` on
+    ``device``; for an operator with
     ``costly_products`` (its entries nonnegative) an upper bound after at most
     :data:`COSTLY_NORM_ITERS` products instead (:func:`collatz_wielandt_bound`). Cached on the
     operator per (device, dtype, iters, seed), so that a second solve on the same operator does
@@ -71,7 +91,7 @@ def norm_sq(op: LinearOperator, device=None, dtype: torch.dtype = torch.float32,
             pass
     if key not in cache:
         cache[key] = (collatz_wielandt_bound(op, device, dtype, min(int(iters), COSTLY_NORM_ITERS))
-                      if getattr(op, "costly_products", False) else _power_iteration(op, device, dtype, iters, seed))
+                      if getattr(op, "costly_products", False) else _lanczos(op, device, dtype, iters, seed))
     return cache[key]
 
 
@@ -100,15 +120,38 @@ def collatz_wielandt_bound(op: LinearOperator, device=None, dtype: torch.dtype =
     return bound
 
 
-def _power_iteration(op: LinearOperator, device, dtype: torch.dtype, iters: int, seed: int) -> float:
+#: relative change of the Lanczos estimate of ||A||^2 between two steps at which it stops
+LANCZOS_RTOL = 1e-6
+
+
+def _lanczos(op: LinearOperator, device, dtype: torch.dtype, iters: int, seed: int) -> float:
+    """The largest eigenvalue of A^T A by Lanczos from a uniform random start drawn from
+    ``seed``: the largest Ritz value of the tridiagonal matrix of at most ``iters`` steps,
+    stopped when a step changes it by less than :data:`LANCZOS_RTOL` (relative). It comes
+    from below, as power iteration does, far faster: on ScalarFlow's 1/4 operator 14 products
+    of A^T A reach 1e-6 where 30 power iterations stop 2e-4 short. The recurrence runs in
+    float64 on the products' results (no reorthogonalisation: that only duplicates converged
+    Ritz values)."""
     g = torch.Generator(device="cpu").manual_seed(seed)
-    v = torch.rand(op.shape[1], 1, generator=g, dtype=dtype).to(device)
+    v = torch.rand(op.shape[1], 1, generator=g, dtype=dtype).to(device).double()
     v /= v.norm()
-    lam = 0.0
-    for _ in range(iters):
-        w = op.adjoint(op.forward(v))
-        lam = float(w.norm())
-        if lam == 0.0:
-            return 0.0
-        v = w / lam
-    return lam
+    previous = torch.zeros_like(v)
+    alpha: list[float] = []
+    beta: list[float] = []
+    theta = 0.0
+    for _ in range(max(int(iters), 1)):
+        w = normal_product(op, v.to(dtype)).double()
+        if beta:
+            w -= beta[-1] * previous
+        alpha.append(float((w * v).sum()))
+        w -= alpha[-1] * v
+        T = np.diag(alpha) + np.diag(beta, 1) + np.diag(beta, -1)
+        estimate = float(np.linalg.eigvalsh(T)[-1])
+        converged = abs(estimate - theta) <= LANCZOS_RTOL * abs(estimate)
+        theta = estimate
+        b = float(w.norm())
+        if converged or b <= 1e-12 * max(abs(theta), 1e-300):  # or an invariant subspace: exact
+            break
+        beta.append(b)
+        previous, v = v, w / b
+    return max(theta, 0.0)

@@ -22,6 +22,7 @@ from kornia.geometry.camera import PinholeCamera
 from flamerecon import interrupt
 from flamerecon.geometry.cameras import cameras_to, pixel_centers, pixel_rays, project_points
 from flamerecon.geometry.grid import VoxelGrid
+from flamerecon.operators import compiled
 from flamerecon.operators.sparse import TRANSPOSE_BLOCK, CsrOperator, GrowingArray, stable_argsort
 from flamerecon.progress import Progress
 
@@ -209,8 +210,17 @@ def integrate_dense(
     ``what`` names the march in its progress lines (a long one only)."""
     C = volume.shape[0]
     out = []
-    frame = grid.normalized_frame(rays.origins.device)
     progress = Progress(what, len(rays), "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
+    if compiled.available(volume.device) and not (torch.is_grad_enabled() and (
+            volume.requires_grad or rays.origins.requires_grad or rays.directions.requires_grad)):
+        values = volume.detach().float().contiguous()
+        live = cells_touching(grid, (values != 0).any(0).view(-1).nonzero().squeeze(1))
+        for sl, seg in compiled_blocks(rays, grid, step, box):
+            out.append(compiled.integrate(values, live, seg).to(volume.dtype))
+            progress.update(sl.stop)
+            interrupt.check()
+        return torch.cat(out, 0) if out else volume.new_zeros(0, C)
+    frame = grid.normalized_frame(rays.origins.device)
     for sl, smp in packed_samples(rays, grid, step, box, frame=frame):
         weighted = _sample(volume, smp.points) * smp.length  # (C, P); points as x, y, z in [-1, 1]
         sums = weighted.new_zeros(C, sl.stop - sl.start).index_add_(1, smp.ray, weighted)
@@ -351,6 +361,8 @@ def assemble(
     M = int(voxel_index.numel())
     box = support_box(grid, voxel_index.to(device))
     live = cells_touching(grid, voxel_index.to(device))
+    if compiled.available(device):
+        return _assemble_compiled(grid, rays, voxel_index, step)
     top = torch.tensor(live.shape[::-1], device=device) - 1  # (nx, ny, nz)
     N = len(rays)
     counts = torch.zeros(N, dtype=torch.long, device=device)  # entries of each row
@@ -395,6 +407,54 @@ def assemble(
     return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, M))
 
 
+def compiled_blocks(rays: Rays, grid: VoxelGrid, step: float, box: tuple[torch.Tensor, torch.Tensor] | None):
+    """Yield (slice of rays, segments) blocks of about
+    :data:`~flamerecon.operators.compiled.BLOCK_SEGMENTS` segments for the compiled kernels:
+    the rays' origins and directions (R, 3) in continuous voxel coordinates, march box entry
+    and exit (R,), first and one-past-last segment (R,) (narrowed to ``box``) and the
+    segment length, as :func:`packed_samples` marches them."""
+    t_near, t_far, first, end, ds = _segments(rays, grid, step, box)
+    scale, offset = grid.index_frame(rays.origins.device)
+    origins = torch.addcmul(offset.to(rays.origins), rays.origins, scale.to(rays.origins))
+    directions = rays.directions * scale.to(rays.directions)
+    total = torch.cumsum((end - first).clamp_min(0).long(), 0)
+    N, s = len(rays), 0
+    while s < N:
+        base = int(total[s - 1]) if s else 0
+        e = min(N, max(int(torch.searchsorted(total, base + compiled.BLOCK_SEGMENTS, right=True)), s + 1))
+        yield slice(s, e), (origins[s:e], directions[s:e], t_near[s:e], t_far[s:e], first[s:e], end[s:e], ds)
+        s = e
+
+
+def assembled_blocks(grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5):
+    """Yield the rows of :func:`assemble` block by block, by the compiled kernel
+    (:mod:`~flamerecon.operators.compiled`; CPU, numba): (slice of rays, entries per row (R,)
+    long, columns (E,) int32 ascending within each row, values (E,) float32)."""
+    M = int(voxel_index.numel())
+    column = torch.full((grid.num_voxels,), -1, dtype=torch.int32)
+    column[voxel_index] = torch.arange(M, dtype=torch.int32)
+    box, live = support_box(grid, voxel_index), cells_touching(grid, voxel_index)
+    progress = Progress("assembling the operator", len(rays), "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
+    for sl, seg in compiled_blocks(rays, grid, step, box):
+        yield (sl, *compiled.assemble_block(seg, column, M, live, grid.resolution))
+        progress.update(sl.stop)
+        interrupt.check()
+
+
+def _assemble_compiled(grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float) -> CsrOperator:
+    """:func:`assemble` by the compiled kernel, block by block (:func:`assembled_blocks`)."""
+    N = len(rays)
+    counts = torch.zeros(N, dtype=torch.long)
+    cols_out, vals_out = GrowingArray(torch.int32, "cpu"), GrowingArray(torch.float32, "cpu")
+    for sl, n, col, val in assembled_blocks(grid, rays, voxel_index, step):
+        counts[sl] = n
+        cols_out.append(col)
+        vals_out.append(val)
+    crow = torch.zeros(N + 1, dtype=torch.long)
+    torch.cumsum(counts, 0, out=crow[1:])
+    return CsrOperator.from_csr(crow, cols_out.tensor(), vals_out.tensor(), (N, int(voxel_index.numel())))
+
+
 #: rays assembled to estimate the operator's size (:func:`assembled_memory`): evenly spread over
 #: the views, they put the nonzeros within about 2% of the full count (ScalarFlow, 1/4 to full
 #: resolution, 128- to 256-cell grids) at under 1% of the assembly's time
@@ -408,11 +468,40 @@ BYTES_PER_TRANSPOSE_ENTRY = 48
 
 @dataclass
 class OperatorMemory:
-    """Estimated size of the assembled operator: nonzeros, bytes kept (A and A^T), peak bytes."""
+    """Estimated size of the assembled operator: nonzeros, bytes kept (A, and A^T where the
+    adjoint needs it: ``copies``), peak bytes."""
 
     nnz: int
     operator_bytes: int
     peak_bytes: int
+    copies: int = 2
+
+    @property
+    def stored(self) -> str:
+        return "A and A^T" if self.copies == 2 else "A"
+
+
+#: new trilinear corners a line meets per voxel of length at most: 4 per cell face it crosses,
+#: |dx| + |dy| + |dz| <= sqrt(3) faces per voxel; and a ray's at most beyond that: the 8 of
+#: its first cell and 4 for each axis's rounding up of its crossings
+CORNERS_PER_VOXEL = 4 * 3**0.5
+CORNERS_PER_RAY = 8 + 3 * 4
+
+
+def assembled_bound(grid: VoxelGrid, rays: Rays, voxel_index: torch.Tensor, step: float = 0.5) -> int:
+    """Peak bytes :func:`assemble` can take at most, from geometry alone (no sample assembled):
+    every ray's chord through the hull's support box times :data:`CORNERS_PER_VOXEL`, plus
+    :data:`CORNERS_PER_RAY` entries a ray, stored as :func:`assembled_memory` counts them, plus a block's temporaries."""
+    N, M = len(rays), int(voxel_index.numel())
+    if N == 0 or M == 0:
+        return 4 * (N + M + 2)
+    near, far = ray_box(rays, *support_box(grid, voxel_index.to(rays.origins.device)))
+    voxels = float((far - near).clamp_min(0).sum()) / float(grid.voxel_size().min())
+    nnz = CORNERS_PER_VOXEL * voxels + CORNERS_PER_RAY * N
+    copies = 1 if compiled.available(rays.origins.device) else 2
+    transient = 2 * 8 * 8 * compiled.BLOCK_SEGMENTS if copies == 1 else (
+        BYTES_PER_CHUNK_SAMPLE * ASSEMBLY_CHUNK_SAMPLES + BYTES_PER_TRANSPOSE_ENTRY * TRANSPOSE_BLOCK)
+    return int(copies * 8 * nnz + 4 * (N + M + 2) + transient)
 
 
 def assembled_memory(
@@ -420,19 +509,41 @@ def assembled_memory(
 ) -> OperatorMemory:
     """Estimate what :func:`assemble` would store and its peak memory beyond what is held
     before it, from the exact assembly of :data:`ESTIMATE_RAYS` rays spread evenly over
-    ``rays``: the nonzeros scaled to every ray, A and A^T at (4 + 4) bytes each, and at the
-    peak the larger of one chunk's temporaries and one transpose block's."""
+    ``rays``: the nonzeros scaled to every ray, A (and A^T, off the compiled kernels) at
+    (4 + 4) bytes each, and at the peak the assembly's temporaries: the compiled march's block
+    scratch, or the torch path's chunk and a transpose block."""
     N, M = len(rays), int(voxel_index.numel())
+    device = rays.origins.device
+    copies = 1 if compiled.available(device) else 2
     if N == 0 or M == 0:
-        return OperatorMemory(0, 4 * (N + M + 2), 4 * (N + M + 2))
+        return OperatorMemory(0, 4 * (N + M + 2), 4 * (N + M + 2), copies)
     stride = max(1, N // ESTIMATE_RAYS)
-    subset = rays[torch.arange(0, N, stride, device=rays.origins.device)]
+    subset = rays[torch.arange(0, N, stride, device=device)]
     nnz = int(assemble(grid, subset, voxel_index, step).nnz * N / len(subset))
     entry = 4 + (4 if nnz < 2**31 else 8)  # value + column index, per copy
-    operator_bytes = 2 * entry * nnz + 4 * (N + M + 2)
-    chunk = min(nnz, ASSEMBLY_CHUNK_SAMPLES)  # about a sample per nonzero
-    transient = max(BYTES_PER_CHUNK_SAMPLE * chunk, BYTES_PER_TRANSPOSE_ENTRY * min(nnz, TRANSPOSE_BLOCK))
-    return OperatorMemory(nnz, operator_bytes, operator_bytes + transient)
+    operator_bytes = copies * entry * nnz + 4 * (N + M + 2)
+    if copies == 1:  # a block's scratch (8 entries a segment) and its rows' copies
+        transient = 2 * 8 * 8 * compiled.BLOCK_SEGMENTS
+    else:
+        chunk = min(nnz, ASSEMBLY_CHUNK_SAMPLES)  # about a sample per nonzero
+        transient = max(BYTES_PER_CHUNK_SAMPLE * chunk, BYTES_PER_TRANSPOSE_ENTRY * min(nnz, TRANSPOSE_BLOCK))
+    return OperatorMemory(nnz, operator_bytes, operator_bytes + transient, copies)
+
+
+#: CPU seconds per ray segment of a matrix-free product (measured 15-40 ns by the compiled
+#: march, hull cells and empty ones together, 33-60 ns by grid_sample, ScalarFlow 1/2 x 192)
+SECONDS_PER_SEGMENT = 50e-9
+#: products of A or A^T per solver iteration (the tv solver: 2 and its checks)
+PRODUCTS_PER_ITERATION = 2.6
+
+
+def matrix_free_seconds(rays: Rays, grid: VoxelGrid, step: float, voxel_index: torch.Tensor, iterations: int,
+                        threads: int) -> float:
+    """Wall seconds a matrix-free solve of ``iterations`` takes on ``threads`` cores: every
+    product marches the rays' segments inside the hull's support box again."""
+    _, _, first, end, _ = _segments(rays, grid, step, support_box(grid, voxel_index.to(rays.origins.device)))
+    segments = float((end - first).clamp_min(0).sum())
+    return segments * SECONDS_PER_SEGMENT * PRODUCTS_PER_ITERATION * max(int(iterations), 1) / max(int(threads), 1)
 
 
 class MatrixFreeOperator:
@@ -452,11 +563,39 @@ class MatrixFreeOperator:
         self.voxel_index = voxel_index.to(rays.origins.device)
         self.box = support_box(grid, self.voxel_index)
         self.shape = (len(rays), int(voxel_index.numel()))
+        self.compiled = compiled.available(rays.origins.device)
+        if self.compiled:  # the rows are gathered on the fly by the compiled march
+            self.column = torch.full((grid.num_voxels,), -1, dtype=torch.int32)
+            self.column[self.voxel_index] = torch.arange(self.shape[1], dtype=torch.int32)
+            self.live = cells_touching(grid, self.voxel_index)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.compiled:
+            return _RowsProduct.apply(x, self)
         return integrate_dense(self.grid.dense(x, self.voxel_index), self.grid, self.rays, self.step, self.box)
 
+    def rows(self, x: torch.Tensor, adjoint: bool) -> torch.Tensor:
+        """A x (or A^T y for ``adjoint``) by the compiled march, block by block."""
+        parts = []
+        what = "the adjoint's march" if adjoint else "marching rays"
+        progress = Progress(what, self.shape[0], "ray", every=PROGRESS_EVERY, after=PROGRESS_AFTER)
+        x = x.detach().float().contiguous()
+        out = x.new_zeros(self.shape[1], x.shape[1]) if adjoint else None
+        for sl, seg in compiled_blocks(self.rays, self.grid, self.step, self.box):
+            args = (seg, self.column, self.shape[1], self.live, self.grid.resolution)
+            if adjoint:
+                out += compiled.rows_adjoint(*args, x[sl])
+            else:
+                parts.append(compiled.rows_forward(*args, x))
+            progress.update(sl.stop)
+            interrupt.check()
+        if adjoint:
+            return out
+        return torch.cat(parts) if parts else x.new_zeros(0, x.shape[1])
+
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        if self.compiled:
+            return self.rows(y, adjoint=True).to(y.dtype)
         C = y.shape[1]
         volume = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device, requires_grad=True)
         total = torch.zeros(C, *self.grid.shape, dtype=y.dtype, device=y.device)
@@ -470,6 +609,19 @@ class MatrixFreeOperator:
                 progress.update(sl.stop)
                 interrupt.check()
         return total.reshape(C, -1)[:, self.voxel_index].T.contiguous()
+
+
+class _RowsProduct(torch.autograd.Function):
+    """y = A x of a compiled :class:`MatrixFreeOperator`, with dL/dx = A^T dL/dy."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, op: MatrixFreeOperator) -> torch.Tensor:
+        ctx.op = op
+        return op.rows(x, adjoint=False).to(x.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):
+        return ctx.op.rows(grad_out, adjoint=True).to(grad_out.dtype), None
 
 
 #: voxels per side of the blocks whose projections bound where a render can be nonzero
@@ -520,19 +672,26 @@ def footprint(nonzero: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, block
 
 
 def render_image(
-    volume: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, step: float = 0.5
+    volume: torch.Tensor, grid: VoxelGrid, cams: PinholeCamera, step: float = 0.5,
+    known: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Render every pixel of every camera: volume (C, nz, ny, nx) -> images (B, C, H, W).
     Only the pixels of the :func:`footprint` of the volume's nonzeros are marched, and only in
-    the box of those nonzeros (everything else adds exactly 0)."""
+    the box of those nonzeros (everything else adds exactly 0). ``known``: pixels already
+    rendered, their flat index ``b * H * W + v * W + u`` (K,) and values (K, C) (an assembled
+    operator's A x: the same weights), taken as they are, not marched."""
     B, C = cams.batch_size, volume.shape[0]
     H, W = int(cams.height[0]), int(cams.width[0])
     with torch.no_grad():
         nonzero = volume.abs().sum(0) > 0
         box = support_box(grid, nonzero.reshape(-1).nonzero().squeeze(1))
         seen = footprint(nonzero, grid, cameras_to(cams, volume.device)).reshape(-1)
-        rays, _ = camera_rays(cams, seen.reshape(B, H, W).to(cams.intrinsics.device))
         pix = volume.new_zeros(B * H * W, C)
+        if known is not None:
+            index = known[0].to(volume.device)
+            pix[index] = known[1].to(pix)
+            seen[index] = False
+        rays, _ = camera_rays(cams, seen.reshape(B, H, W).to(cams.intrinsics.device))
         pix[seen] = integrate_dense(volume, grid, rays.to(volume.device), step, box,
                                     f"rendering {B} view{'s' if B != 1 else ''} of {W}x{H} px")
     return pix.T.reshape(C, B, H, W).transpose(0, 1).contiguous()

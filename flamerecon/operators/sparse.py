@@ -1,7 +1,9 @@
-"""The assembled linear operator: A (N, M) as a torch CSR matrix with int32 indices, plus A^T.
+"""The assembled linear operator: A (N, M) as a torch CSR matrix with int32 indices, and A^T
+where the adjoint needs it.
 
-Keeping A^T as its own CSR makes the adjoint a row-parallel product as fast as the forward
-one, at the cost of storing the values twice. On CUDA a product with C columns runs as C
+On the CPU the compiled adjoint (:mod:`~flamerecon.operators.compiled`) reads A's rows, so A
+is stored once. Elsewhere A^T is kept as its own CSR, which makes the adjoint a row-parallel
+product as fast as the forward one, at the cost of storing the values twice. On CUDA a product with C columns runs as C
 sparse matrix-vector products: cuSPARSE's SpMM with three row-major columns measured 3-4.5x
 slower than three SpMVs on an H100 (0.43 vs 0.14 ms at 9.2 M nonzeros); on the CPU the
 one SpMM is the faster (MKL reads A once for all columns).
@@ -13,6 +15,8 @@ import warnings
 
 import numpy as np
 import torch
+
+from flamerecon.operators import compiled
 
 warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
 warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
@@ -131,28 +135,45 @@ def csr_matmul(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 class _CsrMatmul(torch.autograd.Function):
-    """y = A x with dL/dx = A^T dL/dy, using the stored transpose (no transpose at run time)."""
+    """y = A x with dL/dx = A^T dL/dy, by the operator's adjoint."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, A: torch.Tensor, AT: torch.Tensor) -> torch.Tensor:
-        ctx.AT = AT
-        return csr_matmul(A, x)
+    def forward(ctx, x: torch.Tensor, op: CsrOperator) -> torch.Tensor:
+        ctx.op = op
+        return csr_matmul(op.A, x)
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):
-        return csr_matmul(ctx.AT, grad_out.contiguous()), None, None
+        return ctx.op.adjoint(grad_out.contiguous()), None
 
 
 class CsrOperator:
-    """A stored once as CSR and once transposed; ``forward`` computes A x, ``adjoint`` A^T y.
+    """A stored once as CSR; ``forward`` computes A x, ``adjoint`` A^T y.
 
-    ``x`` is (M, C) and ``y`` (N, C), float32 on the operator's device.
+    ``x`` is (M, C) and ``y`` (N, C), float32 on the operator's device. On the CPU with the
+    compiled kernels (:mod:`~flamerecon.operators.compiled`) the adjoint reads A's rows;
+    elsewhere A^T is stored too, transposed on first use (:attr:`AT`).
     """
 
-    def __init__(self, A: torch.Tensor, AT: torch.Tensor):
-        """Wrap CSR matrices A (N, M) and A^T (M, N) (int32 indices below 2^31 entries)."""
-        self.A, self.AT = A, AT
+    def __init__(self, A: torch.Tensor, AT: torch.Tensor | None = None):
+        """Wrap a CSR matrix A (N, M) (int32 indices below 2^31 entries) and, when at hand,
+        its transpose A^T (M, N)."""
+        self.A, self._AT = A, AT
         self.shape = (int(A.shape[0]), int(A.shape[1]))
+
+    @property
+    def AT(self) -> torch.Tensor:
+        """A^T (M, N) as CSR, transposed from A on first use (:func:`transpose_csr`) and kept."""
+        if self._AT is None:
+            ccol, row_t, val_t = transpose_csr(self.A.crow_indices(), self.A.col_indices(), self.A.values(),
+                                               self.shape[1])
+            self._AT = _csr(ccol, row_t, val_t, (self.shape[1], self.shape[0]))
+        return self._AT
+
+    @property
+    def stores_transpose(self) -> bool:
+        """Whether the adjoint needs A^T stored beside A (not on the CPU with the compiled kernels)."""
+        return not compiled.available(self.device)
 
     @classmethod
     def from_coo(cls, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape) -> CsrOperator:
@@ -173,11 +194,13 @@ class CsrOperator:
     @classmethod
     def from_csr(cls, crow: torch.Tensor, col: torch.Tensor, val: torch.Tensor, shape) -> CsrOperator:
         """Build from the CSR arrays of A (N, M): row pointers (N + 1,), column indices and
-        values (nnz,), columns ascending within each row; A^T by :func:`transpose_csr`."""
+        values (nnz,), columns ascending within each row; A^T, where the adjoint needs it
+        (:attr:`stores_transpose`), by :func:`transpose_csr`."""
         N, M = int(shape[0]), int(shape[1])
-        A = _csr(crow, col, val, (N, M))
-        ccol, row_t, val_t = transpose_csr(A.crow_indices(), A.col_indices(), A.values(), M)
-        return cls(A, _csr(ccol, row_t, val_t, (M, N)))
+        op = cls(_csr(crow, col, val, (N, M)))
+        if op.stores_transpose:
+            op.AT  # noqa: B018 - built now, where the assembly's memory is counted
+        return op
 
     def rows(self, index: torch.Tensor) -> CsrOperator:
         """The operator of the rows ``index`` (R,) ascending: (R, M), A and A^T sliced from the
@@ -209,14 +232,30 @@ class CsrOperator:
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """A x for x (M, C) -> (N, C); differentiable in ``x`` (the backward is A^T)."""
         if x.requires_grad and torch.is_grad_enabled():
-            return _CsrMatmul.apply(x, self.A, self.AT)
+            return _CsrMatmul.apply(x, self)
         return csr_matmul(self.A, x)
 
     def adjoint(self, y: torch.Tensor) -> torch.Tensor:
+        if self._compiled(y):
+            return compiled.adjoint(self.A, y)
         return csr_matmul(self.AT, y)
 
+    def residual_gradient(self, x: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """r = A x - b (N, C) and A^T r (M, C): on the CPU with the compiled kernels in one
+        pass over A (the two products read it twice)."""
+        if self._compiled(x):
+            return compiled.residual_gradient(self.A, x, b)
+        r = self.forward(x) - b
+        return r, self.adjoint(r)
+
+    def _compiled(self, v: torch.Tensor) -> bool:
+        """Whether a product with ``v`` runs on the compiled kernels (CPU, A's dtype, no autograd)."""
+        return compiled.available(v.device) and self.A.values().dtype == v.dtype and not (
+            v.requires_grad and torch.is_grad_enabled())
+
     def to(self, device) -> CsrOperator:
-        return CsrOperator(self.A.to(device), self.AT.to(device))
+        """The operator on ``device`` (A^T, where it is needed there, transposed on first use)."""
+        return CsrOperator(self.A.to(device), None if self._AT is None else self._AT.to(device))
 
     def to_scipy(self):
         """A as ``scipy.sparse.csr_matrix`` (float32), for peers and dumps."""

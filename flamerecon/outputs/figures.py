@@ -259,6 +259,7 @@ def top_view_figure(path: str | os.PathLike, density, bbox_min, bbox_max, up: st
         raise ImportError(f"top_view.png needs matplotlib; {_INSTALL_HINT}") from err
     up = _up(up)
     across, depth = ground_directions(up)
+    depth = (depth[0], -depth[1])  # upwards in the figure: seen from above, not mirrored from below
     seen = oriented(project_along(density, bbox_min, bbox_max, up).sum(axis=0), _array_axes(axis_index(up)),
                     depth, across)
     factor, length = display_length(unit, float(np.max(np.subtract(bbox_max, bbox_min))))
@@ -319,6 +320,7 @@ def slice_panels(scalar: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: Sequ
     up = _up(up)
     rise = (axis_index(up), axis_sign(up))
     across, depth = ground_directions(up)
+    above = (depth[0], -depth[1])  # the horizontal plane's upwards direction, seen from above
     centre = lo + (np.asarray(index) + 0.5) * voxel_size(lo, hi, scalar.shape)
 
     def plane(h: tuple[int, float], v: tuple[int, float]) -> tuple[np.ndarray, str]:
@@ -328,7 +330,7 @@ def slice_panels(scalar: np.ndarray, lo: np.ndarray, hi: np.ndarray, index: Sequ
         return oriented(cut, _array_axes(fixed), v, h), name
 
     out = []
-    for h, v in ((across, rise), (depth, rise), (across, depth)):
+    for h, v in ((across, rise), (depth, rise), (across, above)):
         picture, name = plane(h, v)
         out.append((picture, h, v, name))
     return out

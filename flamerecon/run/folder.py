@@ -95,14 +95,16 @@ def cameras_record(scene: Scene, train: list[int],
 def scores(scene: Scene, volume: torch.Tensor, grid: VoxelGrid, train: list[int], holdout: list[int],
            step: float, silhouette: dict, photometry: dict[str, tuple[float, float]] | None = None,
            native_scene: Mapping | None = None, calibration: dict | None = None, *,
-           penalty: tuple[float, float | None]) -> tuple[dict, torch.Tensor]:
+           penalty: tuple[float, float | None],
+           train_pixels: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[dict, torch.Tensor]:
     """metrics.json's scores of a density (C, nz, ny, nx) and the held-out renders (V, C, H, W).
     With ``native_scene`` (the scene's options) the held-out views are also scored at the
     capture's native resolution (when the run works below it). ``calibration`` (see
     :func:`~flamerecon.fit.reconstruct.calibrated_scene`) is recorded with
     ``train_psnr_after``, this density's training PSNR. ``warnings``: see
-    :func:`~flamerecon.evaluate.result_warnings.result_warnings` (``penalty``: its L1 weights)."""
-    metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry)
+    :func:`~flamerecon.evaluate.result_warnings.result_warnings` (``penalty``: its L1 weights).
+    ``train_pixels``: see :func:`~flamerecon.evaluate.scores.score`."""
+    metrics, held_imgs = score(scene, volume, grid, train, holdout, step, silhouette, photometry, train_pixels)
     H, W = scene.image_size
     metrics["resolution"] = {"working": [W, H]}
     metrics["scene"] = {"up": scene.up, "up_source": scene.up_source, "unit": scene.unit,
@@ -194,7 +196,8 @@ def write_outputs(run_dir: Path, rec: Reconstruction, scene_options: Mapping, wr
     write_json_atomic(run_dir / "cameras.json", {"cameras": cameras_record(scene, setup.train, per_view)})
     metrics, held_imgs = scores(scene, volume, setup.grid, setup.train, setup.holdout, setup.step,
                                 options.silhouette.as_dict(), per_view, calibration=rec.calibration,
-                                penalty=penalty_of(options.solver.as_dict(), rec.fit.l1))
+                                penalty=penalty_of(options.solver.as_dict(), rec.fit.l1),
+                                train_pixels=setup.training_pixels(volume))
     metrics["solver"] = info
     sigma = None if confidence is None else write_confidence(run_dir, confidence, rec, held_imgs, metrics, writer)
     write_scores(run_dir, metrics, held_imgs, scene, setup.holdout, sigma)

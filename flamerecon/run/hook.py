@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from tqdm import tqdm
 
 from flamerecon import interrupt
@@ -98,8 +99,8 @@ def log_pictures(writer: RunWriter, setup: Setup, it: int, vol: torch.Tensor, im
     if values:  # none with every camera fitted
         writer.scalars(it, {"heldout_psnr": sum(values) / len(values)}, prefix=f"{root}eval")
     for img, v in zip(imgs, s.holdout):
-        writer.image(f"{root}heldout/{s.scene.views[v]}", heldout_figure(img, s.scene.images[v], s.scene.views[v]),
-                     it, "HWC")
+        writer.image(f"{root}heldout/{s.scene.views[v]}", heldout_figure(*shrunk(img, s.scene.images[v]),
+                                                                        s.scene.views[v]), it, "HWC")
     writer.image(f"{root}density/top_view", top_view(vol, s.grid.bbox_min, s.grid.bbox_max, s.scene.up), it, "HWC")
 
 
@@ -108,6 +109,20 @@ def announce(text: str | None) -> None:
     :meth:`~flamerecon.fit.reconstruct.SolveHook.begin` does once the run's checks have passed."""
     if text:
         print(text, flush=True)
+
+
+#: image rows a TensorBoard picture of a view keeps at most: larger views are averaged down by an
+#: integer factor (a full-resolution ScalarFlow figure was 3 x 1080 x 1920 pixels, encoded at every check)
+PICTURE_ROWS = 540
+
+
+def shrunk(*images: torch.Tensor) -> list[torch.Tensor]:
+    """Images (C, H, W) averaged over factor x factor blocks, the smallest integer factor that
+    brings H to at most :data:`PICTURE_ROWS` (1: as they are)."""
+    factor = -(-int(images[0].shape[-2]) // PICTURE_ROWS)
+    if factor <= 1:
+        return list(images)
+    return [F.avg_pool2d(image.detach().float().cpu()[None], factor, ceil_mode=True)[0] for image in images]
 
 
 @dataclass(frozen=True)

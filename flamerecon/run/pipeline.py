@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -23,6 +24,7 @@ from flamerecon.fit import reconstruct as core
 from flamerecon.fit.build import Setup, build
 from flamerecon.fit.ensemble import confidence
 from flamerecon.fit.option_rules import check_options
+from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Photometry, mean_of
 from flamerecon.fit.refine_cameras import RefineOptions
 from flamerecon.machine import peak_memory
@@ -104,7 +106,7 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
                               "not for scene.frames solved jointly; run the frames one by one, or leave it off")
 
         return logged(run_frames(cfg, run_dir, resume, announce))
-    options = options_from_config(cfg)
+    options = in_sweep(options_from_config(cfg))
     core.check_solver_name(options.solver.name)
     run_dir, device = start_run(cfg, run_dir)
     ckpt = load_checkpoint(run_dir) if resume else None
@@ -146,9 +148,21 @@ def reconstruct_in(cfg: DictConfig, run_dir: str | Path, resume: bool = False, w
         metrics["leave_one_out"] = cross_check(cfg, run_dir, rec)
         timing["leave_one_out"] = time.perf_counter() - clock
     metrics["timing"] = {**timing, "total": sum(v for k, v in timing.items() if k != "assembly")}
-    metrics["memory"] = peak_memory(device)
+    metrics["memory"] = {**peak_memory(device), "bound": rec.memory_bound / 2**30}
     write_json_atomic(run_dir / "metrics.json", metrics)
     return logged(metrics)
+
+
+def in_sweep(options: ReconstructionOptions) -> ReconstructionOptions:
+    """``options`` for a run of a Hydra multirun (``-m scene.frame=...``: frames of a sequence):
+    ``projector.reuse=auto`` becomes ``true``, so that its runs share their capture's region
+    operator (:mod:`~flamerecon.fit.capture_operator`)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if options.projector.reuse != "auto" or not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return options
+    return options.replace(projector=replace(options.projector, reuse=True))
 
 
 def cross_check(cfg: DictConfig, run_dir: Path, rec) -> dict:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+from flamerecon.operators import residual_gradient
 from flamerecon.solvers.base import (
     Callback,
     Problem,
@@ -62,7 +63,7 @@ class Fista(Solver):
     def step(self, it: int) -> None:
         A, b, lam = self.problem.A, self.problem.b, self.problem.l1
         x, y, t = self.x, self.y, self.t
-        grad_y = A.adjoint(A.forward(y) - b)
+        grad_y = residual_gradient(A, y, b)[1]  # one pass over an assembled A
         x_new = (y - self.step_size * (grad_y + lam)).clamp_min_(0)
         if self.restart:  # momentum points uphill: restart
             t = torch.where(((y - x_new) * (x_new - x)).sum() > 0, 1.0, t)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from flamerecon import interrupt
+from flamerecon.operators.sparse import CsrOperator
 from flamerecon.solvers.base import (
     Callback,
     Problem,
@@ -25,14 +26,12 @@ from flamerecon.solvers.fista import Fista
 
 
 def column_norms_sq(A, M: int, dtype, device) -> torch.Tensor:
-    """diag(A^T A) (M, 1): squared column norms from an assembled operator's stored A^T; ones
-    (no preconditioning) for an operator without one."""
-    if hasattr(A, "AT"):  # CsrOperator: rows of A^T are the columns of A
-        AT = A.AT
-        sq = torch.sparse_csr_tensor(AT.crow_indices(), AT.col_indices(), AT.values() ** 2,
-                                     size=AT.shape)
-        ones = torch.ones(A.shape[0], 1, dtype=AT.values().dtype, device=device)
-        return (sq @ ones).to(dtype)
+    """diag(A^T A) (M, 1): squared column norms of an assembled operator's A; ones (no
+    preconditioning) for an operator without one."""
+    if isinstance(A, CsrOperator):
+        values = A.A.values()
+        sq = torch.zeros(M, dtype=values.dtype, device=device).index_add_(0, A.A.col_indices().long(), values ** 2)
+        return sq[:, None].to(dtype)
     return torch.ones(M, 1, dtype=dtype, device=device)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from flamerecon.operators import HullGradient
+from flamerecon.operators import HullGradient, residual_gradient
 from flamerecon.solvers.base import Problem, Solver, lambda_max, power_norm_sq, register
 
 
@@ -128,8 +128,7 @@ class PrimalDualTV(Solver):
         A, b = problem.A, problem.b
         self.problem, self.x = problem, x
         if getattr(self, "_round", 0) > 0:  # a reweighted round: warm start from the last round
-            self.r = A.forward(x) - b
-            self.grad = A.adjoint(self.r)
+            self.r, self.grad = residual_gradient(A, x, b)
             self.y = project_balls(self.y, self.radius())
             return self._round * self.round_iters + 1
         self.D = D = HullGradient(problem.grid_shape, problem.voxel_index.to(b.device))
@@ -143,8 +142,7 @@ class PrimalDualTV(Solver):
         self.L, self.mu = L, mu
         self.sigma = self.dual_step * L / (2.0 * D.norm_sq_bound)
         self.tau = 1.0 / (1.01 * (0.5 * L + self.sigma * D.norm_sq_bound))
-        self.r = A.forward(x) - b
-        self.grad = A.adjoint(self.r)
+        self.r, self.grad = residual_gradient(A, x, b)
         return start
 
     def radius(self) -> float | torch.Tensor:
@@ -182,8 +180,7 @@ class PrimalDualTV(Solver):
         x_new = (x - self.tau * (self.grad + D.adjoint(self.y) + self.lam())).clamp_min_(0)
         self.y = project_balls(self.y + self.sigma * D.forward(2.0 * x_new - x), self.radius())
         self.x = x_new
-        self.r = A.forward(x_new) - b
-        self.grad = A.adjoint(self.r)
+        self.r, self.grad = residual_gradient(A, x_new, b)
 
     def report(self, it: int) -> dict[str, float]:
         return self.measure(self.problem, self.mu, self.D, self.x, self.y, self.r, self.grad,
