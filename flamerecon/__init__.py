@@ -61,8 +61,8 @@ API = {
     "Run": "run.folder", "load_run": "run.folder",
     "JointFramesOptions": "fit.joint_frames", "JointReconstruction": "fit.joint_frames",
     "reconstruct_frames": "fit.joint_frames",
-    "MotionOptions": "fit.motion", "MotionReconstruction": "fit.motion", "reconstruct_motion": "fit.motion",
-    "FlowOptions": "fit.flow", "Flow": "fit.flow", "estimate_flow": "api", "advect": "fit.flow",
+    "MotionOptions": "dynamics.motion", "MotionReconstruction": "dynamics.motion", "reconstruct_motion": "dynamics.motion",
+    "FlowOptions": "dynamics.flow", "Flow": "dynamics.flow", "estimate_flow": "api", "advect": "dynamics.flow",
     "Problem": "solvers", "VoxelGrid": "geometry.grid", "Scene": "scenes", "view": "api",
     "framing_camera": "api", "save_image": "api",
 }

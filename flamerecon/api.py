@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Mapping, Sequence
-from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -17,12 +16,14 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import instance, one_or_many, tensor, value, wrong_type, wrong_value
 from flamerecon.device import resolve_device
+from flamerecon.dynamics.conventions import frame_rate_of
+from flamerecon.dynamics.flow import Flow, FlowOptions
+from flamerecon.dynamics.flow import estimate_flow as estimate_flow_core
+from flamerecon.dynamics.sequence import FrameFacts, check_sequence
 from flamerecon.errors import ArgumentError, ConfigError
 from flamerecon.evaluate.uncertainty import Confidence, load_confidence
 from flamerecon.fit.build import build, hull_values
 from flamerecon.fit.ensemble import confidence as solve_confidence
-from flamerecon.fit.flow import Flow, FlowOptions
-from flamerecon.fit.flow import estimate_flow as estimate_flow_core
 from flamerecon.fit.option_rules import RULES, check_fields, leaves
 from flamerecon.fit.options import ReconstructionOptions, SolverOptions
 from flamerecon.fit.reconstruct import Reconstruction
@@ -34,6 +35,7 @@ from flamerecon.operators.projector import camera_rays, integrate_dense, render_
 from flamerecon.outputs.atomic import make_folder
 from flamerecon.outputs.export import (
     ALIASES,
+    DENSITY_FILE,
     FORMATS,
     UNCERTAINTY_FILE,
     Density,
@@ -44,9 +46,10 @@ from flamerecon.outputs.export import (
 )
 from flamerecon.outputs.figures import _angles, orbit_cameras, write_png
 from flamerecon.outputs.mesh import DEFAULT_ISO
+from flamerecon.outputs.sequence import SweepError, find_frame_runs
 from flamerecon.resources import config_dir
 from flamerecon.rules import integer, number
-from flamerecon.run.folder import Run
+from flamerecon.run.folder import Run, load_run
 from flamerecon.scenes import SCENE_KEYS, SCENE_LOADERS, Scene, register_built_in
 from flamerecon.scenes import load_scene as load_scene_node
 from flamerecon.solvers import Solver
@@ -345,38 +348,55 @@ def save_image(path: str | os.PathLike, image: torch.Tensor, vmax: float | None 
     return write_png(path, np.ascontiguousarray((scaled.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)))
 
 
-def estimate_flow(frames: Sequence[Reconstruction | Run], options: FlowOptions | None = None,
+def _sweep_runs(path: str | os.PathLike, device) -> list[Run]:
+    """The frames of a multirun folder ``path`` as Runs (a single run folder is refused: a
+    flow needs two frames)."""
+    folder = Path(path)
+    if (folder / DENSITY_FILE).is_file():
+        raise ArgumentError(f"estimate_flow.frames: {folder} is one run folder (one frame); a flow needs two or more: "
+                            "give the multirun folder that holds a run per frame, or a list of Runs")
+    try:
+        runs = find_frame_runs(folder)
+    except (FileNotFoundError, SweepError) as err:
+        raise ArgumentError(f"estimate_flow.frames: {err}; give a multirun folder of consecutive frames' runs "
+                            "(python train.py -m scene.frame=...)") from None
+    return [load_run(r.run_dir, str(device) if device is not None else "auto") for r in runs]
+
+
+def _trained(frame: Reconstruction | Run) -> list[int]:
+    """The view indices ``frame`` was fitted to."""
+    return list(frame.train) if isinstance(frame, Run) else list(frame.setup.train)
+
+
+def estimate_flow(frames: Sequence[Reconstruction | Run] | str | os.PathLike, options: FlowOptions | None = None,
                   device: torch.device | str | None = None) -> Flow:
     """The velocity of every consecutive pair of ``frames`` (Reconstructions of
-    :func:`~flamerecon.fit.reconstruct.reconstruct`, or run folders read back by
-    :func:`~flamerecon.run.folder.load_run`; consecutive frames of one capture on one grid box,
-    in order), each fitted to the next frame's training images
-    (:func:`flamerecon.fit.flow.estimate_flow`). A Run's operator is built again, one frame at a
-    time (a Reconstruction brings its own). The frame rate is ``options.frame_rate``, else the
-    capture's. Returns a :class:`~flamerecon.fit.flow.Flow`: ``flow.pairs[i].u`` in cells per
-    frame, ``flow.velocity(i, "world")`` in world units per second."""
+    :func:`~flamerecon.fit.reconstruct.reconstruct`, run folders read back by
+    :func:`~flamerecon.run.folder.load_run`, or the path of a multirun folder whose run folders
+    are the frames; consecutive frames of one capture on one grid box, fitted to the same
+    cameras, in order: :func:`~flamerecon.dynamics.sequence.check_sequence`), each fitted to the
+    next frame's training images (:func:`flamerecon.dynamics.flow.estimate_flow`). A Run's
+    operator is built again, one frame at a time (a Reconstruction brings its own). The frame
+    rate is ``options.frame_rate``, else the capture's. Returns a
+    :class:`~flamerecon.dynamics.flow.Flow`: ``flow.pairs[i].u`` in cells per frame,
+    ``flow.velocity(i, "world")`` in world units per second."""
+    if isinstance(frames, (str, os.PathLike)):
+        frames = _sweep_runs(frames, device)
     if isinstance(frames, (Reconstruction, Run)) or not isinstance(frames, Sequence):
-        raise wrong_type("estimate_flow.frames", frames, "a list of Reconstructions or Runs, consecutive frames")
-    if len(frames) < 2:
-        raise wrong_value("estimate_flow.frames", frames, "at least two consecutive frames")
+        raise wrong_type("estimate_flow.frames", frames, "a list of Reconstructions or Runs (consecutive frames), "
+                         "or a multirun folder's path")
     for i, frame in enumerate(frames):
         instance(f"estimate_flow.frames[{i}]", frame, (Reconstruction, Run), "a Reconstruction or a Run")
     instance("estimate_flow.options", options, FlowOptions, null=True)
     instance("estimate_flow.device", device, (str, torch.device), "a device name (auto, cpu, cuda, cuda:N)", null=True)
     options = options or FlowOptions()
-    grid = frames[0].grid
-    for i, frame in enumerate(frames[1:], 1):
-        if (frame.grid.bbox_min, frame.grid.bbox_max, frame.grid.shape) != (grid.bbox_min, grid.bbox_max, grid.shape):
-            raise ArgumentError(f"estimate_flow.frames[{i}]: its grid {frame.grid} is not frames[0]'s {grid}; "
-                                "reconstruct every frame on one box (grid.bbox) and resolution")
-        if frame.density.shape[0] != frames[0].density.shape[0]:
-            raise ArgumentError(f"estimate_flow.frames[{i}]: {frame.density.shape[0]} channels, frames[0] "
-                                f"{frames[0].density.shape[0]}; every frame of one capture")
     numbers = [frame.scene.meta.get("frame") for frame in frames]
-    if all(isinstance(n, int) for n in numbers) and any(b != a + 1 for a, b in pairwise(numbers)):
-        raise wrong_value("estimate_flow.frames", numbers, "consecutive frames in order (t, t+1, t+2, ...): a "
-                          "velocity carries one frame onto the next")
-    frame_rate = options.frame_rate or frames[0].scene.frame_rate
+    check_sequence([FrameFacts(f"estimate_flow.frames[{i}] (frame {numbers[i]})", numbers[i], frame.grid.bbox_min,
+                               frame.grid.bbox_max, tuple(frame.grid.shape), int(frame.density.shape[0]),
+                               tuple(frame.scene.views[v] for v in _trained(frame)))
+                    for i, frame in enumerate(frames)], "estimate_flow.frames", api=True)
+    grid = frames[0].grid
+    frame_rate = frame_rate_of(frames[0].scene, options.frame_rate)
     target = resolve_device(str(device)) if device is not None else frames[0].density.device
 
     def next_setup(i: int):

@@ -26,7 +26,7 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 # isort: split
 
 from flamerecon.run.cli import at_least, run_script, script_parser
-from flamerecon.run.flow import FIGURES, FLOW_JSON, flow_options, flow_sweep
+from flamerecon.run.flow import FIGURES, FLOW_JSON, flow_options, flow_sweep, parse_with_overrides
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,13 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-vti", action="store_true", help="skip the .vti series and .pvd")
     parser.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     parser.add_argument("overrides", nargs="*", help="flow.KEY=VALUE options")
-    args = parser.parse_args(argv)
+    args = parse_with_overrides(parser, argv)
 
     def run() -> None:
         report = flow_sweep(args.sweep_dir, flow_options(args.overrides), args.figures, not args.no_vti, args.device)
         for r in report["pairs"]:
             print(f"frame {r['frame']:>4} -> {r['next_frame']}: residual {r['residual_none']:.4f} -> {r['residual']:.4f}, "
-                  f"mean speed {r['mean_speed_world']:.4f} units/s, relative divergence "
+                  f"mean speed {r['mean_speed_world']:.4f} {report['units'].split('; ')[-1]}, relative divergence "
                   f"{r['relative_divergence']:.3f}, {r['seconds']:.1f} s")
         print(f"written: velocity.npz in {len(report['pairs'])} run folders, {FLOW_JSON}, sequence.npz, "
               f"{FIGURES}/ and flow/ (TensorBoard) in {args.sweep_dir}")

@@ -30,7 +30,7 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 import numpy as np
 
 import flamerecon as fr
-from flamerecon.fit.flow import estimate_velocity
+from flamerecon.dynamics.flow import estimate_velocity
 from flamerecon.run.cli import at_least, compose_train, run_script, script_parser
 from flamerecon.run.flow import flow_options
 from flamerecon.run.pipeline import options_from_config

@@ -1,4 +1,4 @@
-"""Motion-compensated windows (:mod:`flamerecon.fit.motion`) against the single-frame
+"""Motion-compensated windows (:mod:`flamerecon.dynamics.motion`) against the single-frame
 reconstruction, on held-out views, per window length.
 
     PYTHONPATH=. python scripts/motion_eval.py --frames 62,67,72 --windows 1,3,5 \
@@ -32,8 +32,8 @@ import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch lo
 
 import numpy as np
 
+from flamerecon.dynamics.motion import MotionOptions, estimate_window, prepare_window, solve_window
 from flamerecon.errors import ConfigError
-from flamerecon.fit.motion import MotionOptions, estimate_window, prepare_window, solve_window
 from flamerecon.run.cli import compose_train, frame_list, run_script, script_parser
 from flamerecon.run.pipeline import options_from_config, resolve_device
 from flamerecon.scenes import load_scene
@@ -162,7 +162,7 @@ def static_window(frames, target: int) -> dict:
     """u = 0 to every other frame (the neighbours' views as if nothing had moved)."""
     import torch
 
-    from flamerecon.fit.motion import Displacement
+    from flamerecon.dynamics.motion import Displacement
 
     zero = torch.zeros(3, *frames[target].setup.grid.shape)
     return {s: Displacement(zero, zero[:, :2, :2, :2], (0, 0, 0), float("nan"), float("nan"), float("nan"))

@@ -59,7 +59,7 @@ def w():
     motion = fr.reconstruct_motion([scene, later], options, fr.MotionOptions(window=1), target=0)
     problem, solver, _ = fr.make_problem(options.solver, setup)
     M, C = int(setup.voxel_index.numel()), int(setup.pixels.shape[1])
-    from flamerecon.fit.flow import PairFlow
+    from flamerecon.dynamics.flow import PairFlow
 
     pair = PairFlow(torch.zeros(3, *rec.grid.shape), torch.zeros(3, 2, 2, 2), 0.1, 0.05, 0.1, 0.5, 1.0, False, 0)
     conf = fr.confidence(rec)

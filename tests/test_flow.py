@@ -1,4 +1,4 @@
-"""The flow of a reconstructed sequence (:mod:`flamerecon.fit.flow`, :mod:`flamerecon.operators.warp`):
+"""The flow of a reconstructed sequence (:mod:`flamerecon.dynamics.flow`, :mod:`flamerecon.operators.warp`):
 advection against the warp and exact shifts, divergence and curl against analytic fields, a
 known motion recovered through an identity "projector", the divergence penalty doing what it
 says, the synthetic plume's known velocity recovered from its images, the velocity files, and
@@ -14,8 +14,7 @@ import pytest
 import torch
 
 import flamerecon as fr
-from flamerecon.errors import ArgumentError, ArgumentTypeError
-from flamerecon.fit.flow import (
+from flamerecon.dynamics.flow import (
     FlowOptions,
     estimate_velocity,
     flow_statistics,
@@ -23,7 +22,8 @@ from flamerecon.fit.flow import (
     shift_residuals,
     uniform_velocity,
 )
-from flamerecon.fit.prediction import velocity_error
+from flamerecon.dynamics.prediction import velocity_error
+from flamerecon.errors import ArgumentError, ArgumentTypeError
 from flamerecon.operators import CsrOperator
 from flamerecon.operators.warp import advect_volume, curl, divergence, warp_volume
 from flamerecon.outputs.velocity import VelocityFileError, load_velocity, save_velocity
@@ -144,7 +144,7 @@ def test_uniform_shift_residuals_find_the_shift(tiny_setup):
 def test_flow_statistics_of_a_rigid_rotation():
     z, _, x = torch.meshgrid(*[torch.arange(n, dtype=torch.float64) for n in SHAPE], indexing="ij")
     u = 0.05 * torch.stack([-(z - 7), torch.zeros_like(x), x - 8])
-    relative, speed = flow_statistics(u, blobs(), FlowOptions(inflow=0.0))
+    relative, speed = flow_statistics(u, blobs(), FlowOptions(inflow=0.0), "y")
     assert relative < 1e-9
     assert 0 < speed < 0.05 * 10
 
@@ -182,8 +182,10 @@ def test_flow_options_are_checked():
 
 
 def test_estimate_flow_refuses_what_it_cannot_use():
+    with pytest.raises(ArgumentError, match="estimate_flow.frames: .*no such sweep folder"):
+        fr.estimate_flow("frames")  # a path: a multirun folder's
     with pytest.raises(ArgumentTypeError, match="estimate_flow.frames"):
-        fr.estimate_flow("frames")
+        fr.estimate_flow(3)
     with pytest.raises(ArgumentError, match="at least two"):
         fr.estimate_flow([])
     with pytest.raises(ArgumentTypeError, match=r"estimate_flow.frames\[0\]"):
@@ -270,3 +272,16 @@ def test_velocity_figures_are_drawn():
         assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3
         assert image.std() > 10  # something was drawn
     assert math.isfinite(float(u.sum()))
+
+
+@pytest.mark.parametrize("up", ["+z", "-x", "-y"])
+def test_velocity_figures_stand_the_scene_up(up):
+    from flamerecon.geometry.axes import up_vector
+    from flamerecon.outputs.flow_figures import upright
+
+    rising = np.broadcast_to(np.array(up_vector(up)).reshape(3, 1, 1, 1), (3, *SHAPE)).copy()
+    density = blobs().numpy()
+    dens, vel, lo, hi, names = upright(density, rising, (0, 0, 0), (1.6, 1.8, 1.4), up)
+    assert np.allclose(vel[1], 1.0) and np.allclose(vel[[0, 2]], 0.0)  # drawn rising upwards
+    assert names[1] == up and float(dens.sum()) == pytest.approx(float(density.sum()))
+    assert sorted(n[-1] for n in names) == ["x", "y", "z"] and np.all(hi > lo)

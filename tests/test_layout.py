@@ -20,7 +20,7 @@ RANKS = {
     "errors": 0, "device": 0, "resources": 0, "plain": 0, "rules": 0, "arguments": 0, "native": 0,
     "progress": 0, "machine": 0, "interrupt": 0,
     "geometry": 1, "operators": 2, "solvers": 3, "outputs": 4, "scenes": 5, "evaluate": 6,
-    "fit": 7, "run": 8, "viewer": 9, "api": 10, "__main__": 10, "": 10,
+    "fit": 7, "dynamics": 8, "run": 9, "viewer": 10, "api": 11, "__main__": 11, "": 11,
 }
 
 
@@ -100,6 +100,14 @@ def test_only_the_run_layer_knows_hydra():
             if any(n.split(".")[0] in ("hydra", "omegaconf") for n in names):
                 offenders.append(f"{module}:{node.lineno}")
     assert not offenders, f"Hydra/OmegaConf imported outside flamerecon/run/: {offenders}"
+
+
+def test_the_dynamics_stage_sits_between_the_method_and_the_run_layer():
+    assert RANKS["fit"] < RANKS["dynamics"] < RANKS["run"]
+    assert RANKS["evaluate"] < RANKS["dynamics"]
+    # what moved there is gone from fit/
+    assert not [n for n in ("flow", "motion", "prediction") if (PACKAGE / "fit" / f"{n}.py").exists()]
+    assert (PACKAGE / "dynamics" / "flow.py").is_file()
 
 
 def test_the_old_flat_paths_are_gone():

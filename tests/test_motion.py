@@ -1,4 +1,4 @@
-"""Motion compensation (:mod:`flamerecon.fit.motion`, :mod:`flamerecon.operators.warp`): the
+"""Motion compensation (:mod:`flamerecon.dynamics.motion`, :mod:`flamerecon.operators.warp`): the
 sparse warp is the dense one, a known constant motion is recovered, the composite operator's
 adjoint passes the dot test, and on the moving synthetic flame a window does not lose held-out
 PSNR against the single frame."""
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import flamerecon as fr
+from flamerecon.dynamics.motion import MotionOptions, estimate_displacement, reconstruct_motion
 from flamerecon.errors import ArgumentError
-from flamerecon.fit.motion import MotionOptions, estimate_displacement, reconstruct_motion
 from flamerecon.operators import CsrOperator, dottest
 from flamerecon.operators.warp import ComposedOperator, RowStack, warp_matrix, warp_volume
 

@@ -135,8 +135,17 @@ CALLS = {
     "flow_benchmark": (lambda t, run, dump: ["--frames", "0", "2", *PLUME], r"3 frames, 2 frame pairs in .* the flow took"),
     "predict": (lambda t, run, dump: ["--frames", "1", "1", *PLUME, "--horizons", "1", "2", "--out", str(t / "new" / "p.json"),
                                       "--figures", str(t / "figures"), "--variant", "nodiv:divergence=0"],
-                (r"  2 flow .*\n  2 flow_causal .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction .*\n  2 flow:nodiv(.|\n)*velocity "
-                 r"against the truth over the smoke: relative L2 \d\.\d+(.|\n)*written: .*predictions_0001_k2_cam04\.png")),
+                (r"  2 flow .*\n  2 flow_causal .*\n  2 simulation .*\n  2 persistence .*\n  2 shift .*\n  2 reconstruction .*\n"
+                 r"  2 flow:nodiv(.|\n)*velocity against the truth over the smoke: relative L2 \d\.\d+(.|\n)*written: "
+                 r".*predictions_0001_k02_cam04\.png(.|\n)*written: .*simulation\.pvd")),
+    "resimulate": (lambda t, run, dump: ["--frames", "0", "2", *PLUME, "--out", str(t / "new" / "r.json"), "--figures",
+                                         str(t / "figures"), "--every", "2"],
+                   (r"    2 +\d+\.\d\d +\d+\.\d\d +\d+\.\d\d +\d+\.\d\d +\d+\.\d{3} +\d+\.\d{3}\n"
+                    r"(.|\n)*mean over frames 1-2, resimulation: held-out "
+                   r"(.|\n)*written: .*resimulation_0002_cam04\.png(.|\n)*resimulation\.pvd")),
+    "simulated_plume": (lambda t, run, dump: ["--frames", "16", "--pairs", "5", "5", "--window", "1", "--cells", "12",
+                                              "16", "12", *SYNTHETIC, "--out", str(t / "new" / "s.json")],
+                        r"uniform +\d+\.\d{3} +\d+\.\d\n(.|\n)*predicted simulation_k10 +volume relative L2"),
     "flame_benchmark": (lambda t, run, dump: ["--seeds", "0", *FLAME, "--out", str(t / "new" / "f.json")],
                         r"mean +opencv .* dB over nnls"),
     "heldout_limits": (lambda t, run, dump: [*SYNTHETIC, "--frames", "0", "--pictures", str(t / "pics")],
@@ -194,6 +203,8 @@ def test_help_prints_the_whole_docstring(name, capsys):
 @pytest.mark.parametrize("name", SCRIPTS)
 def test_a_tiny_real_call(name, tmp_path, capsys, request, monkeypatch):
     monkeypatch.chdir(tmp_path)  # default output folders land here
+    if name == "simulated_plume" and importlib.util.find_spec("phi") is None:
+        pytest.skip("PhiFlow (pip install phiflow, a bench extra) is not installed")
     make, shows = CALLS[name]
     run = request.getfixturevalue("finished_run") if name in ("evaluate", "export", "render", "plan_cameras") else None
     run = request.getfixturevalue("plume_sweep") if name == "flow" else run

@@ -86,6 +86,9 @@ MAX_WINDOW = 101
 MAX_CONTROL = 256
 #: the most frames one joint solve (scene.frames) may hold: each holds its own operator
 MAX_JOINT_FRAMES = 1000
+#: the most frames one advection or simulation may be carried (each a pass over the grid; 10_000
+#: frames are over five minutes of a 30 fps video)
+MAX_STEPS = 10_000
 
 
 def _fixed(most: float, why: str) -> Cap:
@@ -215,16 +218,33 @@ RULES: dict[str, Rule] = {
     "motion.iters": Rule(integer(1), cap=_iterations),
     "motion.max_shift": Rule(integer(0), cap=_fixed(MAX_SHIFT, "the search pads every volume by it")),
     "motion.fit_to": Rule(choice("density", "images")),
-    "flow.control": Rule(integer(2)),
+    "flow.control": Rule(integer(2), cap=_fixed(MAX_CONTROL, "control cells along the grid's longest side")),
     "flow.smooth": Rule(number(0)),
     "flow.divergence": Rule(number(0)),
     "flow.inflow": Rule(number(0, 1, hi_open=True)),
     "flow.outside": Rule(number(0)),
-    "flow.iters": Rule(integer(1)),
-    "flow.warm_iters": Rule(integer(1)),
+    "flow.iters": Rule(integer(1), cap=_iterations),
+    "flow.warm_iters": Rule(integer(1), cap=_iterations),
     "flow.warm_start": Rule(boolean),
-    "flow.margin": Rule(integer(1)),
-    "flow.up": Rule(choice("x", "y", "z", "-x", "-y", "-z")),
+    "flow.margin": Rule(integer(1), cap=_fixed(MAX_SHIFT, "cells around the smoke the fit reads")),
+    "advect.steps": Rule(integer(0), cap=_fixed(MAX_STEPS, "frames carried, each a pass over the grid")),
+    "simulation.window": Rule(integer(1), cap=_fixed(MAX_WINDOW, "every frame of the window keeps its operator")),
+    "simulation.control": Rule(integer(2), cap=_fixed(MAX_CONTROL, "control cells along the grid's longest side")),
+    "simulation.smooth": Rule(number(0)),
+    "simulation.buoyancy": Rule(number()),
+    "simulation.fit_buoyancy": Rule(boolean),
+    "simulation.iters": Rule(integer(1), cap=_iterations),
+    "simulation.inflow": Rule(number(0, 1, hi_open=True)),
+    "simulation.scheme": Rule(choice("semi_lagrangian", "maccormack")),
+    "simulation.pad": Rule(integer(0), cap=_fixed(MAX_SHIFT, "still cells around the box, each side")),
+    "simulation.margin": Rule(integer(0), cap=_fixed(MAX_SHIFT, "cells kept around the smoke, each side")),
+    "simulation.outside": Rule(number(0)),
+    "simulation.incompressible": Rule(boolean),
+    "simulation.self_advection": Rule(boolean),
+    "simulation.start": Rule(choice("flow", "assimilated")),
+    "simulation.up": Rule(choice("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z"), null=True),
+    "simulation.frame_rate": Rule(number(0, lo_open=True), null=True),
+    "flow.up": Rule(choice("x", "y", "z", "-x", "-y", "-z", "+x", "+y", "+z"), null=True),
     "flow.frame_rate": Rule(number(0, lo_open=True), null=True),
     "select.auto": Rule(boolean),
     "select.candidates": Rule(candidate_table),

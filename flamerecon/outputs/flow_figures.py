@@ -2,7 +2,10 @@
 and of the vorticity through the plume, and streamlines over the plume's projection.
 
 Inputs are numpy arrays on one grid: the density (C, nz, ny, nx), the velocity (3, nz, ny, nx)
-in world units per second (components x, y, z), the box ``bbox_min``/``bbox_max``; y is up.
+in world units per second (components x, y, z), the box ``bbox_min``/``bbox_max`` and the
+scene's ``up`` axis: the figures are drawn with ``up`` upwards (the volume turned by the signed
+permutation of :func:`~flamerecon.geometry.axes.turn_from_y`), each axis labelled with the world
+axis it shows (``-z`` where the turned x is the world's -z).
 Every figure returns an (H, W, 3) uint8 image (:func:`flamerecon.outputs.figures.write_png`
 writes it).
 """
@@ -12,20 +15,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from flamerecon.geometry.axes import axis_name, turn_box, turn_from_y, turn_volume
 from flamerecon.operators.warp import curl
 from flamerecon.outputs.export import voxel_size
 from flamerecon.outputs.figures import centroid_index
 
 _HINT = "pip install 'flamerecon[figures]'"
-#: the world's length unit of the scenes that say it (the others: "units")
-LENGTH_UNITS = {"scalarflow": "m", "pinf": "m"}
-
-
-def length_unit(scene_name: str) -> str:
-    """The name of a scene's world length unit for axis labels ("m" for ScalarFlow)."""
-    return LENGTH_UNITS.get(scene_name, "units")
-
-
 def _figure(width: float, height: float):
     try:
         from matplotlib.figure import Figure
@@ -58,7 +53,22 @@ def vorticity_world(velocity: np.ndarray, bbox_min, bbox_max) -> np.ndarray:
     return curl(torch.from_numpy(np.asarray(velocity, dtype=np.float64)), tuple(size.tolist())).numpy()
 
 
-def _planes(density: np.ndarray, velocity: np.ndarray, bbox_min, bbox_max):
+def upright(density: np.ndarray, velocity: np.ndarray, bbox_min, bbox_max, up: str):
+    """The density (C, ...) and velocity (3, ...) turned so that ``up`` points along +y, their
+    box, and the names of the world axes the turned x, y and z show ("+x", "-z", ...)."""
+    Q = turn_from_y(axis_name(up) or "+y").T  # up -> +y
+    dens = turn_volume(torch.from_numpy(np.ascontiguousarray(density)), Q).numpy()
+    vel = turn_volume(torch.from_numpy(np.ascontiguousarray(velocity)), Q)
+    vel = torch.einsum("ij,j...->i...", Q.to(vel.dtype), vel).numpy()
+    lo, hi = turn_box(tuple(np.asarray(bbox_min, float)), tuple(np.asarray(bbox_max, float)), Q)
+    names = []
+    for a in range(3):  # the world direction of turned axis a: column a of Q^T
+        axis = int(Q[a].abs().argmax())
+        names.append(("-" if float(Q[a, axis]) < 0 else "+") + "xyz"[axis])
+    return dens, vel, np.asarray(lo), np.asarray(hi), names
+
+
+def _planes(density: np.ndarray, velocity: np.ndarray, bbox_min, bbox_max, names: list[str]):
     """The three slices through the density's centre of mass: (title, horizontal axis,
     vertical axis, slice index function, in-plane components, out-of-plane component, extent)."""
     lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
@@ -66,36 +76,38 @@ def _planes(density: np.ndarray, velocity: np.ndarray, bbox_min, bbox_max):
     size = voxel_size(lo, hi, density.shape)
     centre = lo + (np.array([i, j, k]) + 0.5) * size
     return [
-        (f"front slice, z = {centre[2]:.3f}", 0, 1, lambda a: a[..., k, :, :], (0, 1), 2, (lo[0], hi[0], lo[1], hi[1])),
-        (f"side slice, x = {centre[0]:.3f}", 2, 1, lambda a: np.swapaxes(a[..., :, :, i], -1, -2), (2, 1), 0,
+        (f"front slice, {names[2]} = {centre[2]:.3f}", 0, 1, lambda a: a[..., k, :, :], (0, 1), 2,
+         (lo[0], hi[0], lo[1], hi[1])),
+        (f"side slice, {names[0]} = {centre[0]:.3f}", 2, 1, lambda a: np.swapaxes(a[..., :, :, i], -1, -2), (2, 1), 0,
          (lo[2], hi[2], lo[1], hi[1])),
-        (f"horizontal slice, y = {centre[1]:.3f}", 0, 2, lambda a: a[..., :, j, :], (0, 2), 1,
+        (f"horizontal slice, {names[1]} = {centre[1]:.3f}", 0, 2, lambda a: a[..., :, j, :], (0, 2), 1,
          (lo[0], hi[0], lo[2], hi[2])),
     ]
 
 
 def velocity_slices_figure(density, velocity, bbox_min, bbox_max, title: str = "", length_unit: str = "m",
-                           arrows: int = 16) -> np.ndarray:
-    """Two rows of three slices through the density's centre of mass (front x-y, side z-y,
-    horizontal x-z): the speed with the in-plane velocity as arrows (about ``arrows`` along a
+                           arrows: int = 16, up: str = "+y") -> np.ndarray:
+    """Two rows of three slices through the density's centre of mass (front, side and
+    horizontal, ``up`` upwards in the first two): the speed with the in-plane velocity as arrows (about ``arrows`` along a
     side) and the smoke's outline (10 % of the slice's peak density), then the vorticity
     component normal to the slice (1/s, red anticlockwise seen from +axis); blank where there
     is no smoke (:func:`smoke_only`)."""
-    density = np.asarray(density, dtype=np.float64).sum(0)
-    velocity = np.asarray(velocity, dtype=np.float64)
+    density, velocity, bbox_min, bbox_max, names = upright(np.asarray(density, dtype=np.float64),
+                                                           np.asarray(velocity, dtype=np.float64), bbox_min,
+                                                           bbox_max, up)
+    density = density.sum(0)
     omega = smoke_only(vorticity_world(velocity, bbox_min, bbox_max), density)
     speed = np.linalg.norm(velocity, axis=0)
     velocity, speed = smoke_only(velocity, density), smoke_only(speed, density)
-    names = "xyz"
     fig = _figure(15.0, 9.5)
-    planes = _planes(density[None], velocity, bbox_min, bbox_max)
+    planes = _planes(density[None], velocity, bbox_min, bbox_max, names)
     top = float(np.nanpercentile(speed, 99)) if np.isfinite(speed).any() else 1.0
     vort = max(float(np.nanpercentile(np.abs(omega), 99)) if np.isfinite(omega).any() else 1.0, 1e-12)
     for col, (name, h, v, cut, inplane, normal, extent) in enumerate(planes):
         dens = cut(density)
         rows, cols = dens.shape
         grid = (np.linspace(extent[0], extent[1], cols), np.linspace(extent[2], extent[3], rows))
-        axes = (f"{names[h]} [{length_unit}]", f"{names[v]} [{length_unit}]")
+        axes = (f"{names[h]} [{length_unit}]", f"{names[v]}{' (up)' if v == 1 else ''} [{length_unit}]")
         ax = _panel(fig, col + 1, cut(speed), extent, dens, ("viridis", 0, max(top, 1e-12)), "orange",
                     f"speed, {name}", axes, f"speed [{length_unit}/s]")
         step = max(1, max(rows, cols) // arrows)
@@ -128,25 +140,26 @@ def _panel(fig, at: int, image: np.ndarray, extent, dens: np.ndarray, colours: t
     return ax
 
 
-def streamlines_figure(density, velocity, bbox_min, bbox_max, title: str = "", length_unit: str = "m"
-                       ) -> np.ndarray:
-    """The smoke seen from the front (projected along z) and from the side (along x), each with
-    the streamlines of the in-plane velocity on the slice through its centre of mass, coloured
-    by speed, where there is smoke (:func:`smoke_only`)."""
-    dens = np.asarray(density, dtype=np.float64).sum(0)
-    velocity = smoke_only(np.asarray(velocity, dtype=np.float64), dens)
+def streamlines_figure(density, velocity, bbox_min, bbox_max, title: str = "", length_unit: str = "m",
+                       up: str = "+y") -> np.ndarray:
+    """The smoke seen from the front and from the side (``up`` upwards), each with the
+    streamlines of the in-plane velocity on the slice through its centre of mass, coloured by
+    speed, where there is smoke (:func:`smoke_only`)."""
+    dens, velocity, lo, hi, names = upright(np.asarray(density, dtype=np.float64),
+                                            np.asarray(velocity, dtype=np.float64), bbox_min, bbox_max, up)
+    dens = dens.sum(0)
+    velocity = smoke_only(velocity, dens)
     speed = np.linalg.norm(velocity, axis=0)
-    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
     size = voxel_size(lo, hi, velocity.shape)
     i, _, k = centroid_index(dens[None])
     nz, ny, nx = dens.shape
     centres = [lo[a] + (np.arange(n) + 0.5) * size[a] for a, n in enumerate((nx, ny, nz))]
     top = float(np.nanpercentile(speed, 99)) if np.isfinite(speed).any() else 1.0
     fig = _figure(11.0, 7.5)
-    views = [("front (along z), streamlines at z of the centre", dens.sum(0),
-              centres[0], velocity[0][k], velocity[1][k], speed[k], "x"),
-             ("side (along x), streamlines at x of the centre", dens.sum(2).T,
-              centres[2], velocity[2][:, :, i].T, velocity[1][:, :, i].T, speed[:, :, i].T, "z")]
+    views = [(f"front (along {names[2]}), streamlines at {names[2]} of the centre", dens.sum(0),
+              centres[0], velocity[0][k], velocity[1][k], speed[k], names[0]),
+             (f"side (along {names[0]}), streamlines at {names[0]} of the centre", dens.sum(2).T,
+              centres[2], velocity[2][:, :, i].T, velocity[1][:, :, i].T, speed[:, :, i].T, names[2])]
     for col, (name, picture, horizontal, uh, uv, sp, axis) in enumerate(views):
         ax = fig.add_subplot(1, 2, col + 1)
         ax.imshow(picture, origin="lower", cmap="gray",
@@ -158,7 +171,7 @@ def streamlines_figure(density, velocity, bbox_min, bbox_max, title: str = "", l
         ax.set_ylim(lo[1], hi[1])
         ax.set_title(name, fontsize=10)
         ax.set_xlabel(f"{axis} [{length_unit}]")
-        ax.set_ylabel(f"y [{length_unit}]")
+        ax.set_ylabel(f"{names[1]} (up) [{length_unit}]")
         fig.colorbar(lines.lines, ax=ax, label=f"speed [{length_unit}/s]", shrink=0.85)
     if title:
         fig.suptitle(title)

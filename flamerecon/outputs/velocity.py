@@ -5,7 +5,7 @@ folder, and as VTK vector fields.
 units per second (metres per second for ScalarFlow), at the same cell centres as the density
 (``bbox_min``, ``bbox_max``: the density file's box); ``frame`` (the frame it starts from; it
 carries that frame onto ``frame + 1``), ``frame_rate`` (frames per second) and ``record`` (JSON:
-how the fit went, :meth:`flamerecon.fit.flow.PairFlow.record`, and the options). A velocity in
+how the fit went, :meth:`flamerecon.dynamics.flow.PairFlow.record`, and the options). A velocity in
 cells per frame is ``velocity / (cell size * frame_rate)``.
 """
 

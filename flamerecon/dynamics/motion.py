@@ -45,7 +45,13 @@ from flamerecon.fit.debias import debias
 from flamerecon.fit.option_rules import check_section
 from flamerecon.fit.options import ReconstructionOptions
 from flamerecon.fit.reconstruct import Fit, calibrated_scene, fit
-from flamerecon.operators.warp import ComposedOperator, RowStack, upsample_displacement, warp_matrix, warp_volume
+from flamerecon.operators.warp import (
+    ComposedOperator,
+    RowStack,
+    upsample_displacement,
+    warp_matrix,
+    warp_volume,
+)
 from flamerecon.scenes import Scene
 from flamerecon.solvers import Problem, lambda_max, make_solver
 from flamerecon.solvers.temporal import estimate_shift
@@ -187,8 +193,8 @@ def estimate_displacement(source: torch.Tensor, target: torch.Tensor, motion: Mo
         opt = torch.optim.LBFGS([control], lr=1.0, max_iter=int(motion.iters), history_size=10,
                                 line_search_fn="strong_wolfe")
 
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
+        def closure(opt=opt, control=control, s_blur=s_blur, t_blur=t_blur) -> torch.Tensor:
+            opt.zero_grad()  # (this stage's optimiser, control grid and volumes, bound here)
             u = upsample_displacement(control, shape)
             loss = float(motion.smooth) * roughness(control)
             if data is not None:

@@ -54,9 +54,11 @@ import torch
 import torch.nn.functional as F
 
 from flamerecon.arguments import fields, instance, tensor, value, wrong_value
+from flamerecon.dynamics.conventions import heights, up_of
+from flamerecon.dynamics.motion import _blur, control_shape
 from flamerecon.fit.build import Setup
-from flamerecon.fit.motion import _blur, control_shape
-from flamerecon.fit.option_rules import check_section
+from flamerecon.fit.option_rules import check_fields, check_section
+from flamerecon.geometry.axes import up_vector
 from flamerecon.geometry.grid import VoxelGrid
 from flamerecon.operators.base import LinearOperator
 from flamerecon.operators.warp import (
@@ -70,9 +72,6 @@ from flamerecon.operators.warp import (
 from flamerecon.progress import Progress
 from flamerecon.rules import integer
 
-#: the axes ``up`` may name
-UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
-
 
 @dataclass(frozen=True)
 class FlowOptions:
@@ -82,8 +81,9 @@ class FlowOptions:
     bottom fraction of the box along ``up`` where the divergence is free; ``iters`` L-BFGS
     iterations per control grid from cold, ``warm_iters`` on the finest grid when
     ``warm_start`` starts a pair from the previous one; ``margin`` cells around the smoke where
-    the fit looks; ``frame_rate`` (frames per second) to give velocities in world units per
-    second (None: the capture's, where its files say)."""
+    the fit looks; ``up`` the axis the inflow region is at the bottom of (None: the scene's,
+    :func:`~flamerecon.dynamics.conventions.up_of`); ``frame_rate`` (frames per second) to give
+    velocities in world units per second (None: the capture's, where its files say)."""
 
     control: int = 16
     smooth: float = 30.0
@@ -94,7 +94,7 @@ class FlowOptions:
     warm_iters: int = 15
     warm_start: bool = True
     margin: int = 4
-    up: str = "y"
+    up: str | None = None
     frame_rate: float | None = None
 
     def __post_init__(self) -> None:
@@ -102,26 +102,6 @@ class FlowOptions:
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
-
-
-def up_vector(up: str) -> tuple[float, float, float]:
-    """The unit (x, y, z) of ``up`` (one of :data:`UP_AXES`)."""
-    sign = -1.0 if up.startswith("-") else 1.0
-    axis = "xyz".index(up[-1])
-    return tuple(sign if a == axis else 0.0 for a in range(3))  # type: ignore[return-value]
-
-
-def heights(shape: tuple[int, int, int], up: str, dtype=torch.float64) -> torch.Tensor:
-    """(nz, ny, nx): each cell centre's height in the grid along ``up``, 0 at the bottom
-    cell, 1 at the top one (corner-aligned, as the control grids are)."""
-    axis = 2 - "xyz".index(up[-1])
-    n = shape[axis]
-    h = torch.arange(n, dtype=dtype) / max(n - 1, 1)
-    if up.startswith("-"):
-        h = 1 - h
-    view = [1, 1, 1]
-    view[axis] = n
-    return h.reshape(view).expand(shape)
 
 
 def control_spacing(shape: tuple[int, int, int], control: torch.Tensor) -> tuple[float, float, float]:
@@ -203,10 +183,10 @@ def smoke_mask(density: torch.Tensor, level: float = 0.01) -> torch.Tensor:
     return total > level * float(total.max().clamp_min(1e-30))
 
 
-def flow_statistics(u: torch.Tensor, density: torch.Tensor, options: FlowOptions) -> tuple[float, float]:
+def flow_statistics(u: torch.Tensor, density: torch.Tensor, options: FlowOptions, up: str) -> tuple[float, float]:
     """(relative divergence, mean speed in cells per frame) of ``u`` (3, nz, ny, nx) over the
     smoke of ``density`` above the inflow region (see :class:`PairFlow`); NaN without smoke."""
-    mask = smoke_mask(density) & (heights(tuple(u.shape[1:]), options.up, u.dtype) >= options.inflow).to(u.device)
+    mask = smoke_mask(density) & (heights(tuple(u.shape[1:]), up, u.dtype) >= options.inflow).to(u.device)
     if not bool(mask.any()):
         return math.nan, math.nan
     lo, hi = _box(mask.nonzero().T, 2, tuple(u.shape[1:]))
@@ -308,7 +288,8 @@ def estimate_velocity(source: torch.Tensor, target: Setup, options: FlowOptions 
     device = target.voxel_index.device
     stages = sorted({max(2, options.control // 4), max(2, options.control // 2), int(options.control)})
     data = _PairData(source, target, int(options.margin), 3 * 2 ** (len(stages) - 1))
-    smoke = smoke_mask(source) & (heights(shape, options.up) >= options.inflow).to(source.device)
+    up = up_of(target.scene, options.up)
+    smoke = smoke_mask(source) & (heights(shape, up) >= options.inflow).to(source.device)
     probes = divergence_probes(cell_points(smoke.reshape(-1).nonzero().squeeze(1).to(device), shape))
     unmoved = max(data.relative_residual(torch.zeros_like(data.points)), 1e-12)  # the data terms' scale
 
@@ -350,7 +331,7 @@ def estimate_velocity(source: torch.Tensor, target: Setup, options: FlowOptions 
                                 options.iters)
     seconds = time.perf_counter() - started
     u = upsample_displacement(control, shape)
-    rel_div, speed = flow_statistics(u, source.to(device), options)
+    rel_div, speed = flow_statistics(u, source.to(device), options, up)
     at_points = sample_points(control, data.points * _to_control(shape, control), "border")
     return PairFlow(u.float(), control.float(), unmoved, data.relative_residual(at_points), rel_div, speed,
                     seconds, warm, frame)
@@ -410,22 +391,23 @@ def cells_to_world(u: torch.Tensor, grid: VoxelGrid, frame_rate: float | None) -
 
 
 def advect(density: torch.Tensor, u: torch.Tensor, steps: int) -> torch.Tensor:
-    """``density`` (C, nz, ny, nx) carried ``steps`` >= 0 frames along the steady velocity
+    """``density`` (C, nz, ny, nx) carried ``steps`` >= 0 frames (at most
+    :data:`~flamerecon.fit.option_rules.MAX_STEPS`) along the steady velocity
     ``u`` (3, nz, ny, nx), cells per frame (:func:`~flamerecon.operators.warp.advect_volume`)."""
     density = tensor("advect.density", density, "(C, nz, ny, nx)", ndim=4, finite=True)
     u = tensor("advect.velocity", u, "(3, nz, ny, nx) in cells per frame", shape=(3, *density.shape[1:]),
                finite=True)
-    value("advect.steps", steps, integer(0))
+    check_fields("advect", {"steps": steps})  # an integer >= 0, at most MAX_STEPS frames
     return advect_volume(density, u.to(density.device, density.dtype), int(steps))
 
 
-def uniform_velocity(shape: tuple[int, int, int], speed: float, up: str = "y", device=None) -> torch.Tensor:
+def uniform_velocity(shape: tuple[int, int, int], speed: float, up: str = "+y", device=None) -> torch.Tensor:
     """(3, nz, ny, nx): ``speed`` cells per frame along ``up`` everywhere."""
     direction = torch.tensor(up_vector(up), dtype=torch.float32, device=device) * float(speed)
     return direction.reshape(3, 1, 1, 1).expand(3, *shape).contiguous()
 
 
-def shift_residuals(source: torch.Tensor, target: Setup, speeds: Sequence[float], up: str = "y") -> list[float]:
+def shift_residuals(source: torch.Tensor, target: Setup, speeds: Sequence[float], up: str = "+y") -> list[float]:
     """||A S_v x - b||^2 / ||b||^2 for each uniform shift S_v of ``speeds`` cells per frame
     along ``up``: the data term of the baseline a fitted flow is compared with."""
     shape = tuple(target.grid.shape)
