@@ -32,9 +32,17 @@ import sys
 import time
 from pathlib import Path
 
+import torch
+from omegaconf import OmegaConf
+
 import flamerecon as fr
+from flamerecon.evaluate.metrics import detail_band
+from flamerecon.evaluate.scores import detail_sigma
 from flamerecon.fit.reconstruct import mean_of
+from flamerecon.geometry.cameras import camera_subset
 from flamerecon.outputs.atomic import write_json_atomic
+from flamerecon.outputs.figures import detail_comparison, write_png
+from flamerecon.outputs.names import file_stem
 from flamerecon.run.cli import (
     compose_train,
     frame_list,
@@ -43,17 +51,9 @@ from flamerecon.run.cli import (
     run_script,
     script_parser,
 )
-from flamerecon.evaluate.metrics import detail_band
-from flamerecon.evaluate.scores import detail_sigma
-from flamerecon.geometry.cameras import camera_subset
-from flamerecon.outputs.figures import detail_comparison, write_png
-from flamerecon.outputs.names import file_stem
 from flamerecon.run.leave_one_out import leave_one_out
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
-
-import torch  # noqa: E402, I001  after flamerecon, which sets the threads first
-from omegaconf import OmegaConf  # noqa: E402
 
 
 def method(text: str) -> tuple[str, list[str]]:

@@ -39,7 +39,14 @@ from flamerecon.evaluate.scores import render_scene_views, score_rendered
 from flamerecon.fit.reconstruct import mean_of
 from flamerecon.outputs.atomic import write_json_atomic
 from flamerecon.resources import config_dir
-from flamerecon.run.cli import at_least, compose_train, frame_list, output_file, run_script, script_parser
+from flamerecon.run.cli import (
+    at_least,
+    compose_train,
+    frame_list,
+    output_file,
+    run_script,
+    script_parser,
+)
 from flamerecon.run.pipeline import options_from_config
 from flamerecon.scenes import load_scene
 

@@ -418,7 +418,7 @@ def test_a_scene_turned_to_another_up_draws_the_same_top_view_slices_and_orbits(
 @pytest.mark.parametrize("up", ["+y", "-y", "+z", "-x"])
 def test_the_horizontal_slice_is_seen_from_above_not_mirrored(up):
     """Right by up in the picture, its viewer stands on the up side: right x up = the up axis."""
-    *_, (plane, h, v, _) = slice_panels(np.zeros((4, 5, 6), np.float32), np.zeros(3), np.ones(3), (1, 1, 1), up)
+    *_, (_, h, v, _) = slice_panels(np.zeros((4, 5, 6), np.float32), np.zeros(3), np.ones(3), (1, 1, 1), up)
 
     def vector(direction):
         out = np.zeros(3)
