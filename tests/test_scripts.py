@@ -172,7 +172,8 @@ CALLS = {
     "sequence_benchmark": (lambda t, run, dump: ["--frames", "0", "1", *SYNTHETIC],
                            r"1/2, \d+ s left\n(.|\n)*2/2, 0 s left\n(.|\n)*2 frames in .* per minute"),
     "uncertainty_check": (lambda t, run, dump: ["--frames", "0", "--out", str(t / "new" / "u.json"), *SYNTHETIC],
-                          r"    0 cam04 .*\n.*volume: rank correlation.*\n.*against the noiseless images .*coverage"),
+                          (r"    0 cam04 .*\n +cam04 against its noiseless images: coverage .*\n.*volume: rank correlation.*\n"
+                           r".*against the noiseless images .*coverage")),
     "temporal_eval": (lambda t, run, dump: [*SYNTHETIC, "scene.frames=[0,1]", "--weights", "0:0", "--no-baseline"],
                       r"joint l2=0 tv=0 .* +1 "),
 }

@@ -130,7 +130,7 @@ def tiny_setup():
     def with_data(density: torch.Tensor):
         return dataclasses.replace(setup, hull=torch.ones(SHAPE, dtype=torch.bool), voxel_index=torch.arange(m),
                                    operator=identity, pixels=density.float().reshape(1, -1).T.contiguous(),
-                                   row_view=None)
+                                   row_view=None, row_pixel=None)  # its rows are cells, not pixels
 
     return with_data
 
