@@ -691,14 +691,7 @@ def _render_camera_without_focal_length(tmp_path, capsys):
     return script_outcome(capsys, "render", [str(run), "--camera", str(tmp_path / "cams.json")])
 
 
-def _lars_too_big(tmp_path, capsys):
-    (tmp_path / "run").mkdir()
-    return outcome(capsys, tiny_cfg("solver=lars", "solver.max_voxels=10"), tmp_path / "run")
-
-
 INTERNALS = {
-    "a solver refusing the problem (ValueError)": (
-        _lars_too_big, r"^solver=lars: the problem has \d+ unknowns .* solver\.max_voxels"),
     "init= from a run of other channels": (_init_from_a_gray_run,
                                            r"init: .*gray holds 1 channel\(s\), this run's images 3"),
     "render: camera file with K = 0": (_render_camera_without_focal_length,
@@ -731,18 +724,35 @@ def _no_vtk():
     raise ImportError("writing .vti needs the 'vtk' package; install the optional exporters")
 
 
-BEFORE_THE_SOLVE = {  # cases that used to fail only after the solve, or with a reader's traceback
-    "export=vti without vtk": ("export=vti", r"export\.formats: writing \.vti needs the 'vtk' package"),
-    "init= of a folder without density": ("init=/nonexistent/run",
+BEFORE_THE_SOLVE = {  # cases that used to fail only after the work, or with a reader's traceback
+    "export=vti without vtk": (["export=vti"], r"export\.formats: writing \.vti needs the 'vtk' package"),
+    "init= of a folder without density": (["init=/nonexistent/run"],
                                           r"init: /nonexistent/run.*no density file.*give a finished run"),
+    "solver=lars on more hull voxels than solver.max_voxels": (
+        ["solver=lars", "solver.max_voxels=10"], r"^solver=lars: the problem has \d+ unknowns .* solver\.max_voxels=10"),
+    "a box that misses the flame (an empty hull)": (
+        ["grid.bbox=[[0.5,0.5,0.5],[0.6,0.6,0.6]]"],
+        (r"the visual hull on the \d+x\d+x\d+ grid is empty; .*check that the box \[0\.5, 0\.5, 0\.5\]"
+         r"\.\.\[0\.6, 0\.6, 0\.6\] \(grid\.bbox\) holds the flame")),
 }
 
 
 @pytest.mark.parametrize("case", list(BEFORE_THE_SOLVE))
-def test_refused_before_the_solve(case, tmp_path, capsys, monkeypatch):
-    override, message = BEFORE_THE_SOLVE[case]
+def test_refused_before_the_work(case, tmp_path, capsys, monkeypatch):
+    overrides, message = BEFORE_THE_SOLVE[case]
     monkeypatch.setattr("flamerecon.outputs.export._vtk", _no_vtk)
     monkeypatch.setattr(RunHook, "solve", lambda *a, **k: pytest.fail("solved"))
+    monkeypatch.setattr("flamerecon.fit.reconstruct.build", lambda *a, **k: pytest.fail("built an operator"))
     (tmp_path / "run").mkdir()
-    code, line = outcome(capsys, tiny_cfg(override), tmp_path / "run")
+    code, line = outcome(capsys, tiny_cfg(*overrides), tmp_path / "run")
     assert code == 2 and re.search(message, line), line
+
+
+def test_lars_solves_a_small_problem_end_to_end(tmp_path, capsys):
+    """LARS knows no iteration count ahead (solver.max_iters: null): the run's progress takes it
+    as unknown, and the exact path is written like any solver's result."""
+    (tmp_path / "run").mkdir()
+    code, line = outcome(capsys, tiny_cfg("solver=lars", "solver.max_voxels=5000", "grid.resolution=8"),
+                      tmp_path / "run")
+    assert (code, line) == (0, "")
+    assert (tmp_path / "run" / "density.npz").is_file()

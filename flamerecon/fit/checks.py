@@ -15,9 +15,9 @@ from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.errors import ConfigError, HullError, MemoryBudgetError
 from flamerecon.fit.options import SilhouetteOptions
-from flamerecon.geometry.cameras import K_of, pixel_rays
+from flamerecon.geometry.cameras import K_of, camera_subset, pixel_rays
 from flamerecon.geometry.grid import VoxelGrid
-from flamerecon.geometry.hull import carve_counts
+from flamerecon.geometry.hull import carve_counts, visual_hull
 from flamerecon.geometry.photometry import linearize
 from flamerecon.geometry.silhouettes import silhouette_signal, silhouettes
 from flamerecon.machine import available_bytes, format_bytes
@@ -114,14 +114,15 @@ def check_scene(scene: Scene, grid: VoxelGrid) -> None:
 
 
 def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelGrid,
-                      read_at: int | None = None) -> None:
+                      read_at: int | None = None, first: VoxelGrid | None = None) -> None:
     """What a reconstruction of ``scene`` with ``options`` on ``grid`` refuses before any work
     (each refusal one line): the split (``holdout``), a confidence asked for with fewer than two
     training cameras, a ``calibration.file`` that cannot give the training cameras (at the
     images it is read with: the scene's, or with ``read_at`` the ladder's coarsest rung's, that
-    downscale of the capture), the cameras against the box (:func:`check_scene`) and the
-    training views' silhouettes (:func:`check_silhouettes`); the build checks them again on
-    each level."""
+    downscale of the capture), the cameras against the box (:func:`check_scene`), the
+    training views' silhouettes (:func:`check_silhouettes`), an empty visual hull on the first
+    grid solved (``first``, default ``grid``) and, for ``solver=lars``, more hull voxels on
+    ``grid`` than ``solver.max_voxels``; the build checks them again on each level."""
     train, _ = scene.split(None if options.holdout is None else list(options.holdout))
     if options.uncertainty.enabled and len(train) < 2:
         raise ConfigError(
@@ -142,6 +143,27 @@ def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelG
         masks = torch.zeros(scene.num_views, *scene.image_size, dtype=torch.bool, device=scene.images.device)
         masks[train] = silhouettes(scene.images[train], **options.silhouette.as_dict())
     check_silhouettes(scene, masks, train, options.silhouette)
+    check_hull(scene, options, masks, train, grid, first or grid)
+
+
+def check_hull(scene: Scene, options: ReconstructionOptions, masks: torch.Tensor, train: list[int],
+               grid: VoxelGrid, first: VoxelGrid) -> None:
+    """Refuse an empty visual hull of the ``train`` cameras' silhouettes ``masks`` (B, H, W) on
+    ``first`` (:func:`explain_empty_hull`), and for ``solver=lars`` a hull on ``grid`` of more
+    voxels than ``solver.max_voxels`` (the path's dense Gram matrix)."""
+    from flamerecon.solvers.lars import too_many_voxels
+
+    cams = camera_subset(scene.cameras, train)
+    masks = masks[train].to(cams.intrinsics.device)
+    margin = int(options.hull.margin_voxels)
+    hull = visual_hull(first, cams, masks, margin)
+    if not bool(hull.any()):
+        raise explain_empty_hull(scene, first, cams, masks, train, float(options.silhouette.threshold or 0.0), margin)
+    if options.solver.name == "lars":
+        voxels = int((hull if first is grid else visual_hull(grid, cams, masks, margin)).sum())
+        refusal = too_many_voxels(voxels, int(options.solver.params.get("max_voxels", 5000)))
+        if refusal is not None:
+            raise ConfigError(refusal)
 
 
 def density_fault(density: np.ndarray | torch.Tensor, diagonal: float) -> str | None:
@@ -311,13 +333,15 @@ def explain_empty_hull(
             f"camera '{name}' alone carves away the {int(alone[b])} voxels every other camera "
             f"keeps (its silhouette covers {100 * cover:.1f}% of its image)"
         )
+        where = "or check that view's calibration"
     else:
+        lo, hi = ([round(float(v), 4) for v in end] for end in (grid.bbox_min, grid.bbox_max))
         culprit = "no single camera is to blame: the silhouettes do not overlap inside the box"
+        where = f"or check that the box {lo}..{hi} (grid.bbox) holds the flame"
     return HullError(
         f"{_where(scene)}: the visual hull on the {'x'.join(map(str, grid.resolution))} grid is "
         f"empty; {culprit}; try silhouette.threshold={0.5 * threshold:.3g} (now {threshold:g}) or "
-        f"hull.margin_voxels={margin_voxels + 2} (now {margin_voxels}), or check that view's "
-        "calibration"
+        f"hull.margin_voxels={margin_voxels + 2} (now {margin_voxels}), {where}"
     )
 
 

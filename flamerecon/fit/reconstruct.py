@@ -626,7 +626,8 @@ def reconstruct(scene: Scene, options: ReconstructionOptions | None = None, hook
     if volume is None and resumed is None and options.init:  # read (and refused) before any work
         volume = init_volume(options.init, levels[0].grid if levels else fine, int(scene.images.shape[1]))
     rungs = [level.downscale for level in levels if level.downscale is not None]
-    check_before_work(scene, options, fine, rungs[0] if rungs else None)  # the file is read on the coarsest rung
+    # the file is read on the coarsest rung; the hull is first carved on the first level's grid
+    check_before_work(scene, options, fine, rungs[0] if rungs else None, levels[0].grid if levels else None)
     bound = check_workload(scene, options, fine, device, levels).bytes
     hook.begin()
     timing: dict = {}

@@ -41,8 +41,8 @@ class Monitor:
     only while the monitor's own wall time, this render included (predicted from the last
     one), stays within ``eval_share`` of the solve's (None: no limit), so that past the first
     render (always made) they cost at most that share; on the final grid (``tag_root`` ``""``) never at the
-    last iteration (``total``), whose pictures the run's final evaluation logs. :attr:`seconds`
-    is the wall time spent here.
+    last iteration (``total``; 0 where the solver's count is not known ahead, as LARS's), whose
+    pictures the run's final evaluation logs. :attr:`seconds` is the wall time spent here.
     """
 
     def __init__(self, setup: Setup, writer: RunWriter, eval_every: int, eval_share: float | None,
@@ -50,7 +50,7 @@ class Monitor:
         self.setup, self.writer = setup, writer
         self.every, self.share = int(eval_every), None if eval_share is None else float(eval_share)
         desc = "solve" if not tag_root else f"solve {tag_root.rstrip('/')}"
-        self.bar = tqdm(total=total, desc=desc, unit="it", leave=False, dynamic_ncols=True)
+        self.bar = tqdm(total=int(total) or None, desc=desc, unit="it", leave=False, dynamic_ncols=True)
         self.tag_root = tag_root
         # the final grid's last iteration: its pictures come from the run's final evaluation
         self.left_to_evaluation = int(total) if not tag_root and int(total) > 0 else None
@@ -204,7 +204,7 @@ class RunHook(SolveHook):
         start_x = x0 if x0 is not None else setup.pixels.new_zeros(problem.A.shape[1], problem.b.shape[1])
         start_objective = float(problem.objective(setup.pixels.new_zeros(start_x.shape)))
         o = self.options
-        monitor = Monitor(setup, self.writer, o.eval_every, o.eval_share, int(getattr(solver, "max_iters", 0)),
+        monitor = Monitor(setup, self.writer, o.eval_every, o.eval_share, int(getattr(solver, "max_iters", None) or 0),
                           stage.tag_root)
         monitor.last = monitor.last_pictures = start
         observe = monitor

@@ -28,6 +28,16 @@ def gram_matrix(A: LinearOperator, like: torch.Tensor, block: int = 256) -> torc
     return 0.5 * (G + G.T)
 
 
+def too_many_voxels(M: int, max_voxels: int) -> str | None:
+    """Why LARS refuses a problem of ``M`` unknowns (hull voxels) under ``solver.max_voxels``,
+    or None where it takes it: the run checks this before any work, the solver again."""
+    if M <= max_voxels:
+        return None
+    return (f"solver=lars: the problem has {M} unknowns (hull voxels), more than solver.max_voxels={max_voxels}; "
+            f"the LARS path needs the dense {M}x{M} Gram matrix ({8 * M * M / 1e9:.1f} GB) and up to {M} steps. "
+            "Use solver=fista (the exact default) for problems this size, or a smaller grid.resolution")
+
+
 @register("lars")
 class Lars(Solver):
     """Nonnegative LARS-LASSO per channel, exact at the problem's lambda.
@@ -48,13 +58,9 @@ class Lars(Solver):
                                "solver=fista solves the same problem without it") from err
         A, b = problem.A, problem.b
         N, M = A.shape
-        if M > self.max_voxels:
-            raise ValueError(
-                f"solver=lars: the problem has {M} unknowns (hull voxels), more than "
-                f"solver.max_voxels={self.max_voxels}; the LARS path needs the dense "
-                f"{M}x{M} Gram matrix ({8 * M * M / 1e9:.1f} GB) and up to {M} steps. "
-                "Use solver=fista (the exact default) for problems this size."
-            )
+        refusal = too_many_voxels(M, self.max_voxels)
+        if refusal is not None:
+            raise ValueError(refusal)
         G = gram_matrix(A, b).numpy()
         Xy = A.adjoint(b).double().cpu().numpy()
         max_iter = self.max_iters if self.max_iters is not None else 10 * M + 10
