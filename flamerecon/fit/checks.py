@@ -148,13 +148,18 @@ def check_before_work(scene: Scene, options: ReconstructionOptions, grid: VoxelG
 
 def check_hull(scene: Scene, options: ReconstructionOptions, masks: torch.Tensor, train: list[int],
                grid: VoxelGrid, first: VoxelGrid) -> None:
-    """Refuse an empty visual hull of the ``train`` cameras' silhouettes ``masks`` (B, H, W) on
-    ``first`` (:func:`explain_empty_hull`), and for ``solver=lars`` a hull on ``grid`` of more
+    """Refuse a ``grid`` or ``first`` too big to carve (:func:`check_grid_memory`), an empty
+    visual hull of the ``train`` cameras' silhouettes ``masks`` (B, H, W) on ``first``
+    (:func:`explain_empty_hull`), and for ``solver=lars`` a hull on ``grid`` of more
     voxels than ``solver.max_voxels`` (the path's dense Gram matrix)."""
     from flamerecon.solvers.lars import too_many_voxels
 
     cams = camera_subset(scene.cameras, train)
-    masks = masks[train].to(cams.intrinsics.device)
+    device = cams.intrinsics.device
+    budget = memory_budget(device, options.projector.max_memory_gb)
+    for carved in (grid, first):  # the grid alone must fit before it is carved: its own message
+        check_grid_memory(carved, scene.num_views, device, budget)
+    masks = masks[train].to(device)
     margin = int(options.hull.margin_voxels)
     hull = visual_hull(first, cams, masks, margin)
     if not bool(hull.any()):
