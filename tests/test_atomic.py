@@ -35,7 +35,8 @@ _CHILD = textwrap.dedent(
     class BlocksWhenRead:
         def __array__(self, dtype=None, copy=None):
             print("mid-write", flush=True)
-            time.sleep(600)
+            for _ in range(6000):  # short sleeps: a signal taken by another of the process's
+                time.sleep(0.1)    # threads (torch's) interrupts no sleep; the flag is seen after it
             return np.zeros(1)
 
     big = np.full((4, 64, 128, 128), 7.0, dtype=np.float32)  # 16 MiB
