@@ -28,15 +28,18 @@ REPO = Path(__file__).resolve().parents[1]
 # numpy asks the second array for its data: it is killed in the middle of save_npz_atomic.
 _CHILD = textwrap.dedent(
     """
-    import sys, time
+    import signal, sys, time
     import numpy as np
+
+    # a process started in the background by a shell inherits SIGINT ignored (and Python keeps
+    # it so): this child is a user's process interrupted at the keyboard
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     from flamerecon.outputs.atomic import save_npz_atomic
 
     class BlocksWhenRead:
         def __array__(self, dtype=None, copy=None):
             print("mid-write", flush=True)
-            for _ in range(6000):  # short sleeps: a signal taken by another of the process's
-                time.sleep(0.1)    # threads (torch's) interrupts no sleep; the flag is seen after it
+            time.sleep(600)
             return np.zeros(1)
 
     big = np.full((4, 64, 128, 128), 7.0, dtype=np.float32)  # 16 MiB
