@@ -36,6 +36,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import replace
 
 import flamerecon  # noqa: F401 (first: its OpenMP setting is read when torch loads)
 
@@ -76,6 +77,8 @@ def check_split(scene, options, views: list[int] | None, scale_before: float | N
     no held-out pose spread) at ``scale_before`` (None: the options' scale)."""
     if views is not None:
         options = options.replace(holdout=tuple(scene.views[v] for v in views))
+    if options.calibration.frames and options.calibration.refine != "none":  # the pose part, as a run with it has
+        options = options.replace(calibration=replace(options.calibration, offsets=True))
     clock = time.perf_counter()
     rec = reconstruct(scene, options)
     run_seconds = time.perf_counter() - clock

@@ -66,6 +66,9 @@ CASES = [
                          "fit_against": "others", "first_iterations": 5, "solve_iterations": 5,
                          "seed": 1, "min_gain": 0.1}.items()],
     (["calibration.resolution=8", "calibration.refine=pose"], None),
+    (["calibration.offsets=true"], "calibration.offsets"),
+    (["calibration.offsets=true", "calibration.refine=pose"], "calibration.offsets"),  # a fit on the frame itself
+    (["calibration.offsets=true", "calibration.refine=pose", "calibration.frames=[1,2]"], None),
     (["export.iso=0.2"], "export.iso"),
     (["export.iso=0.2", "export=mesh"], None),
     (["log.eval_share=0.5", "log.eval_every=0"], "log.eval_share"),

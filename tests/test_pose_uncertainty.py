@@ -189,6 +189,33 @@ def test_a_capture_calibration_keeps_every_cameras_pose_uncertainty_and_the_run_
     assert set(u["poses"]) == {r["name"] for r in records}
 
 
+@pytest.mark.e2e
+def test_a_capture_calibration_measures_the_pose_offsets_only_where_asked_and_adds_them_to_its_file(tmp_path):
+    """A capture's first run pays for the camera fit alone: its calibration file holds no pose
+    offsets and the summary says how to measure them; a later run asking for them
+    (calibration.offsets=true) measures them once into the same file, its cameras untouched."""
+    fit = ["calibration.refine=pose", "calibration.frames=[1,2]", "calibration.rounds=1",
+           f"calibration.folder={tmp_path / 'calibration'}", "threads=1"]
+    first = CliRun(tmp_path / "first", *fit).result()
+    assert first.returncode == 0, first.stderr
+    [path] = (tmp_path / "calibration").rglob("cameras-*.json")
+    before = json.loads(path.read_text())
+    assert not any("pose_offset" in r for r in before["cameras"])
+    assert "limiting_camera" not in json.loads((tmp_path / "first" / "metrics.json").read_text())["calibration"]
+    assert re.search(r"calibration limits +not measured: calibration.offsets=true", first.stdout)
+    second = CliRun(tmp_path / "second", *fit, "calibration.offsets=true").result()
+    assert second.returncode == 0, second.stderr
+    assert list((tmp_path / "calibration").rglob("cameras-*.json")) == [path]
+    after = json.loads(path.read_text())
+    assert after["calibration"] == before["calibration"]
+    assert [r["world_to_camera"] for r in after["cameras"]] == [r["world_to_camera"] for r in before["cameras"]]
+    assert all("pose_offset" in r and r["pose_sigma_deg"] >= 0 for r in after["cameras"])
+    metrics = json.loads((tmp_path / "second" / "metrics.json").read_text())
+    assert metrics["calibration"]["source"] == "read" and metrics["calibration"]["limiting_camera"] in {
+        r["name"] for r in after["cameras"]}
+    assert re.search(rf"calibration limits +{metrics['calibration']['limiting_camera']}: .* dB", second.stdout)
+
+
 def test_the_poses_members_see_the_training_cameras_moved_and_are_not_scaled(scene):
     options = fr.ReconstructionOptions(grid=fr.GridOptions(resolution=16), device="cpu",
                                        solver=fr.SolverOptions("fista", None, 1e-3, {"max_iters": 20}))

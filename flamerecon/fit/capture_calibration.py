@@ -76,7 +76,9 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
     """The training cameras ``train`` of ``scene`` refined over the frames
     ``options.calibration.frames`` of its capture (each loaded as :func:`load_frame` does and
     turned into a :class:`CalibrationFrame` by ``frame_of(frame, weights)``), read from the
-    capture's calibration file when it exists, else fitted and written there.
+    capture's calibration file when it exists, else fitted and written there. The cameras' pose
+    offsets are measured with them where ``calibration.offsets`` or the confidence asks for them
+    (:func:`kept_offsets` adds them to a file kept without).
     ``choose(cameras, frames, which)``: the selection record of the capture's solver weights,
     chosen on those frames (None: none), first with the capture's own cameras (the weights of
     the fit's densities), then, where the fit corrected the cameras, again with the fitted ones;
@@ -91,10 +93,15 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
                     [*fitting_code(), sys.modules[frame_of.__module__]])
     folder = Path(options.calibration.folder) if options.calibration.folder else cache_home() / "calibration"
     path = folder / capture_name(scene) / f"cameras-{key[:16]}.json"
+    wanted = options.calibration.offsets or options.uncertainty.enabled  # the pose offsets, where used
     stored = read_calibration(path, key)
     if stored is not None:
-        return CaptureCalibration(file_cameras(path, scene, train), list(stored["history"]), "read", path,
-                                  stored.get("selection"), file_offsets(path, scene.views))
+        cameras = file_cameras(path, scene, train)
+        offsets = file_offsets(path, scene.views)
+        if wanted and not offsets:  # a calibration kept without them: measured now, once, into its file
+            weights = (stored.get("selection") or {}).get("chosen")
+            offsets = kept_offsets(path, scene, [frame_of(f, weights) for f in frames], cameras, train, grid, options)
+        return CaptureCalibration(cameras, list(stored["history"]), "read", path, stored.get("selection"), offsets)
     first = None if choose is None else choose(scene.cameras, frames, "the capture's own")
     fitting = [frame_of(f, None if first is None else first["chosen"]) for f in frames]
     found = refine(cameras_to(scene.cameras, device), train, fitting, grid, options.calibration,
@@ -102,9 +109,11 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
     selection = first if first is None or found_nothing(found.history) else choose(found.cameras, frames,
                                                                                     "the fitted")
     records = camera_records(scene.views, cameras_to(found.cameras, "cpu"), train, calibrated=scene.cameras)
-    offsets = capture_offsets(fitting, found.cameras, train, grid, options.calibration, float(options.projector.step),
-                              options.calibration.frames)
-    add_pose_records(records, scene, cameras_to(found.cameras, "cpu"), offsets, grid)
+    if wanted:  # on densities solved with the weights kept in the file, as a later run measures them
+        measuring = fitting if selection is first else [frame_of(f, selection["chosen"]) for f in frames]
+        add_pose_records(records, scene, cameras_to(found.cameras, "cpu"),
+                         capture_offsets(measuring, found.cameras, train, grid, options.calibration,
+                                         float(options.projector.step), options.calibration.frames), grid)
     record = {"key": key, "frames": list(options.calibration.frames), "refine": options.calibration.refine,
               "history": found.history, "selection": selection}
     try:
@@ -118,12 +127,30 @@ def capture_refinement(scene: Scene, train: list[int], grid: VoxelGrid, options:
                               "fitted", path, selection, file_offsets(path, scene.views, records))
 
 
+def kept_offsets(path: Path, scene: Scene, fitting: list[CalibrationFrame], cameras: PinholeCamera, train: list[int],
+                 grid: VoxelGrid, options: ReconstructionOptions) -> dict[str, PoseOffset] | None:
+    """The pose offsets of every camera of ``scene`` measured on the calibration frames
+    ``fitting`` with the cameras (B) the calibration file ``path`` holds, written into that file
+    (its cameras and key unchanged); returned by name."""
+    data = read_camera_file(path)
+    offsets = capture_offsets(fitting, cameras, train, grid, options.calibration, float(options.projector.step),
+                              options.calibration.frames)
+    add_pose_records(data["cameras"], scene, cameras_to(cameras, "cpu"), offsets, grid)
+    try:
+        write_json_atomic(path, data)
+    except OSError as err:
+        log.warning("could not add the cameras' pose offsets to %s (%s): the next run that needs them measures "
+                    "them again", path, err)
+    return file_offsets(path, scene.views, data["cameras"])
+
+
 def calibration_key(scene: Scene, train: list[int], grid: VoxelGrid, options: ReconstructionOptions,
                     device: torch.device, images: dict[str, torch.Tensor]) -> dict:
     """What the cameras fitted by :func:`capture_refinement` depend on, JSON-able."""
     fit_options = {k: v for k, v in options.as_dict().items() if k not in UNKEYED}
     fit_options["calibration"] = {k: v for k, v in fit_options["calibration"].items()
-                                 if k not in ("folder", "file", "resolution", "score_before")}  # the grid is keyed
+                                 if k not in ("folder", "file", "resolution", "score_before", "offsets")}  # the grid
+    # is keyed; the pose offsets are added to the file where a run needs them
     fit_options["projector"] = {k: v for k, v in fit_options["projector"].items() if k != "reuse"}  # same operator
     return {
         "views": [scene.views[v] for v in train],

@@ -24,6 +24,7 @@ member is a density on the reconstruction's hull; the sub-voxel shifts of
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -42,6 +43,8 @@ from flamerecon.fit.weight_selection import row_subset
 from flamerecon.geometry.cameras import camera_subset, cameras_to
 from flamerecon.operators.projector import render_image
 from flamerecon.progress import Progress
+
+log = logging.getLogger(__name__)
 
 #: solver options that weigh a prior, perturbed by the ``weights`` members when the solver has one
 PRIOR_WEIGHTS = ("tv", "smooth")
@@ -164,6 +167,10 @@ def confidence(setup, options, x: torch.Tensor, uncertainty: UncertaintyOptions 
     uncertainty = uncertainty or options.uncertainty
     started = time.perf_counter()
     offsets = offsets_of(calibration)
+    if not offsets and (calibration or {}).get("frames"):
+        log.warning("the capture's calibration %s holds no pose offsets: this confidence leaves the cameras' pose "
+                    "errors out; reconstruct with calibration.offsets=true to measure them (once per capture)",
+                    calibration.get("file"))
     fitted = set((calibration or {}).get("cameras") or {})  # the cameras the camera fit refined
     poses = None if not offsets else spread(setup.scene.cameras, list(setup.scene.views), offsets, setup.grid, fitted)
     found = solve_ensemble(setup, options, x, uncertainty, poses)

@@ -206,6 +206,7 @@ RULES: dict[str, Rule] = {
     "calibration.file": Rule(text, null=True),
     "calibration.score_before": Rule(boolean),
     "calibration.min_gain": Rule(number(0, 1)),
+    "calibration.offsets": Rule(boolean),
     "temporal.l2": Rule(number(0)),
     "temporal.tv": Rule(number(0)),
     "temporal.motion": Rule(choice("none", "shift")),
@@ -470,6 +471,10 @@ NEEDS: dict[str, Need] = {
     "calibration.gauge": Need(_changed("mean"), _refined, _REFINEMENT),
     "calibration.rig": Need(bool, _refined, _REFINEMENT),
     "calibration.score_before": Need(bool, _refined, _REFINEMENT),
+    "calibration.offsets": Need(bool, lambda flat: flat.get("calibration.refine", "none") != "none"
+                                and bool(flat.get("calibration.frames")),
+                                "a capture calibration (calibration.refine=pose or pose+intrinsics with "
+                                "calibration.frames)"),
     "grid.level_iters": Need(lambda v: v is not None, lambda flat: bool(flat.get("grid.levels")),
                              "coarse levels (grid.levels, e.g. [16, 32])"),
     **{f"solver.{key}": Need(_changed(default), lambda flat: (flat.get("solver.reweight_rounds") or 0) > 0,
@@ -560,7 +565,7 @@ class Yield:
 _FIT = tuple(f"calibration.{key}" for key in (
     "refine", "frames", "rounds", "iterations", "band_px", "max_rays", "prior_rotation_deg", "prior_translation",
     "prior_focal", "prior_principal_px", "fit_against", "resolution", "first_iterations", "solve_iterations", "seed",
-    "min_gain"))
+    "min_gain", "offsets"))
 
 
 def _selected(flat: Mapping) -> tuple[str, ...]:
