@@ -9,8 +9,10 @@ meets the visual hull (everywhere else both are 0), beside that of the rendered 
 trivial predictor) and of an oracle that knows the error around each pixel within 2 px (a
 diagnosis: what a spread at that resolution could at best do); the coverage of the 1- and
 2-sigma bands there (the trivial predictor's with its gain fitted to this very view); the
-measured and the predicted full-frame PSNR, and the prediction *before* the cameras' poses
-entered it (no pose spread; at ``--scale-before``, default ``uncertainty.scale``). ``--loo``
+measured and the predicted full-frame PSNR (the confidence's spread and the sensor noise the
+training images show, :func:`~flamerecon.evaluate.uncertainty.capture_sigma`; the spread alone as
+``psnr_predicted_spread``), and the prediction *before* the cameras' poses entered it (no pose
+spread, no noise; at ``--scale-before``, default ``uncertainty.scale``). ``--loo``
 holds out every camera in turn (leave-one-view-out) instead of the run's held-out ones, and
 prints per frame the rank correlation of the views' predicted PSNR with their measured one.
 With a scene whose cameras were given off from those that rendered it (``scene=synthetic_flame``
@@ -47,11 +49,13 @@ import torch
 from flamerecon.evaluate.metrics import resample_to
 from flamerecon.evaluate.scores import captured_silhouettes, silhouette_union
 from flamerecon.evaluate.uncertainty import (
+    capture_sigma,
     check_view,
     coverage,
     predicted_psnr,
     recorded_sigma,
     spearman,
+    training_noise,
 )
 from flamerecon.fit.ensemble import confidence
 from flamerecon.fit.pose_uncertainty import corrections_between, rotation_deg
@@ -100,11 +104,14 @@ def check_split(scene, options, views: list[int] | None, scale_before: float | N
     captured = captured_silhouettes(rec.scene, rec.setup.holdout, options.silhouette.as_dict())
     union = silhouette_union(rendered, captured, options.silhouette.as_dict())
     volume = check_volume(rec, conf)
+    noise = training_noise(rec.scene, rec.setup.train)
     out = {}
     for k, v in enumerate(rec.setup.holdout):
         recorded = rec.scene.to_recorded(rendered[k])
-        out[scene.views[v]] = {**check_view(recorded, rec.scene.recorded_view(v),
-                                            recorded_sigma(rec.scene, rendered[k], sigma[k]), domain[k], union[k]),
+        against = capture_sigma(rec.scene, rendered[k], sigma[k], noise)  # the spread and the sensor's noise
+        out[scene.views[v]] = {**check_view(recorded, rec.scene.recorded_view(v), against, domain[k], union[k]),
+                               "psnr_predicted_spread": predicted_psnr(recorded_sigma(rec.scene, rendered[k], sigma[k])),
+                               "noise_variance": float(noise.variance(recorded).double().mean()),
                                "psnr_predicted_before": predicted_psnr(recorded_sigma(rec.scene, rendered[k], before[k])),
                                "unscaled_variance": float(unscaled[k].double().mean()),
                                "pose_variance": float(pose_variance[k].double().mean()),
@@ -221,9 +228,9 @@ def truth_rates(truths: list[dict]) -> dict[str, float]:
 
 def exact_scale(r: dict) -> float:
     """The ``uncertainty.scale`` that would make view ``r``'s predicted PSNR its measured one
-    (a linear camera), its cameras' pose part unchanged; 0 where that part alone predicts more
-    error than measured."""
-    left = 10 ** (-r["psnr"] / 10) - r["pose_variance"]
+    (a linear camera), its cameras' pose part and the sensor's noise unchanged; 0 where those alone
+    predict more error than measured."""
+    left = 10 ** (-r["psnr"] / 10) - r["pose_variance"] - r.get("noise_variance", 0.0)
     return math.sqrt(max(left, 0.0) / r["unscaled_variance"]) if r["unscaled_variance"] > 0 else 0.0
 
 

@@ -21,8 +21,10 @@ from flamerecon.evaluate.camera_planning import (
     total_variance,
     variance_reduction,
 )
+from flamerecon.evaluate.image_noise import NoiseModel
 from flamerecon.evaluate.uncertainty import (
     Confidence,
+    capture_sigma,
     check_view,
     coverage,
     load_confidence,
@@ -225,8 +227,17 @@ def test_a_run_with_the_confidence_writes_it_everywhere_it_is_read(tmp_path):
     assert figure.shape[1] > 4 * 48  # render | captured | error | predicted sigma, and the colour bar
     loaded = fr.confidence(fr.load_run(run))  # read back from uncertainty.npz, not solved again
     assert loaded.labels == metrics["uncertainty"]["members"]
-    sigma = fr.uncertainty(loaded, camera_subset(fr.load_run(run).scene.cameras, [4]))
-    assert predicted_psnr(sigma[0]) == pytest.approx(held["psnr_predicted"], abs=1e-3)
+    done_run = fr.load_run(run)
+    cams = camera_subset(done_run.scene.cameras, [4])
+    sigma = fr.uncertainty(loaded, cams)
+    # the prediction against the capture: the render's spread and the noise the training images show
+    noise = metrics["uncertainty"]["noise"]
+    assert all(a >= 0 for a in noise["a"]) and max(noise["b"]) > 0  # the scene's noise grows with intensity
+    model = NoiseModel(torch.tensor(noise["a"], dtype=torch.float64), torch.tensor(noise["b"], dtype=torch.float64))
+    rendered = fr.render(done_run.density, done_run.grid, cams)[0]
+    against = capture_sigma(done_run.scene, rendered, sigma[0], model)
+    assert predicted_psnr(against) == pytest.approx(held["psnr_predicted"], abs=1e-3)
+    assert predicted_psnr(sigma[0]) > held["psnr_predicted"] + 0.1  # the noise lowers it
 
 
 def test_frames_solved_jointly_refuse_the_confidence_before_any_work(tmp_path):

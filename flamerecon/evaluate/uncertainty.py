@@ -39,6 +39,7 @@ import torch
 from kornia.geometry.camera import PinholeCamera
 
 from flamerecon.arguments import fields, tensor, value, wrong_value
+from flamerecon.evaluate.image_noise import NoiseModel, noise_model
 from flamerecon.evaluate.pose_spread import PoseSpread
 from flamerecon.geometry.cameras import cameras_to
 from flamerecon.geometry.grid import VoxelGrid
@@ -307,6 +308,22 @@ def recorded_sigma(scene: Scene, rendered: torch.Tensor, sigma: torch.Tensor) ->
     if scene.response is None:
         return sigma
     return (scene.to_recorded(rendered + sigma) - scene.to_recorded(rendered)).abs()
+
+
+def capture_sigma(scene: Scene, rendered: torch.Tensor, sigma: torch.Tensor, noise: NoiseModel) -> torch.Tensor:
+    """The predicted spread (..., C, H, W) of the error of renders ``rendered`` (..., C, H, W, of
+    spread ``sigma``) against their cameras' captures, in recorded units: the render's own spread
+    (:func:`recorded_sigma`) and the sensor ``noise`` at the render's recorded intensity, added
+    in variance (the capture is the true image plus its noise)."""
+    spread = recorded_sigma(scene, rendered, sigma)
+    level = scene.to_recorded(rendered.clamp(0, 1))
+    return (spread.pow(2) + noise.variance(level)).sqrt()
+
+
+def training_noise(scene: Scene, train: list[int]) -> NoiseModel:
+    """The sensor noise of ``scene``'s cameras, from its training views ``train`` as recorded
+    (:func:`~flamerecon.evaluate.image_noise.noise_model`); a held-out view is never read."""
+    return noise_model(torch.stack([scene.recorded_view(v) for v in train]))
 
 
 def save_confidence(path: str | os.PathLike, conf: Confidence, views: list[str]) -> Path:

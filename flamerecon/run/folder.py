@@ -23,9 +23,10 @@ from flamerecon.evaluate.result_warnings import penalty_of, result_warnings
 from flamerecon.evaluate.scores import native_scores, score, write_renders
 from flamerecon.evaluate.uncertainty import (
     Confidence,
+    capture_sigma,
     predicted_psnr,
-    recorded_sigma,
     save_confidence,
+    training_noise,
 )
 from flamerecon.fit.build import scene_grid, split_views
 from flamerecon.fit.checks import check_density_fits
@@ -141,8 +142,9 @@ def write_scores(run_dir: Path, metrics: dict, held_imgs: torch.Tensor, scene: S
 def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_imgs: torch.Tensor,
                      metrics: dict, writer: RunWriter) -> torch.Tensor:
     """uncertainty.npz (:func:`~flamerecon.evaluate.uncertainty.save_confidence`), each held-out
-    view's ``psnr_predicted`` in ``metrics`` (its pose uncertainty included), its ``uncertainty``
-    record (members, scale, shift, seconds; with the cameras' pose uncertainty, ``poses`` per
+    view's ``psnr_predicted`` in ``metrics`` (its pose uncertainty and the sensor noise the training
+    images show included, :func:`~flamerecon.evaluate.uncertainty.capture_sigma`), its ``uncertainty``
+    record (members, scale, shift, noise, seconds; with the cameras' pose uncertainty, ``poses`` per
     camera) and the TensorBoard images ``uncertainty/<view>`` (render |
     captured | error | predicted sigma); returns the held-out confidence images (V, C, H, W), in
     image units."""
@@ -151,15 +153,16 @@ def write_confidence(run_dir: Path, conf: Confidence, rec: Reconstruction, held_
     save_confidence(run_dir / UNCERTAINTY_FILE, conf, [scene.views[i] for i in setup.train])
     sigma = (conf.image(camera_subset(scene.cameras, setup.holdout), [scene.views[v] for v in setup.holdout]).cpu()
              if setup.holdout else torch.zeros_like(held_imgs))
-    recorded = recorded_sigma(scene, held_imgs, sigma)
+    noise = training_noise(scene, setup.train)
+    against = capture_sigma(scene, held_imgs, sigma, noise)  # the error against the capture: spread and noise
     for k, v in enumerate(setup.holdout):
-        metrics["heldout"][scene.views[v]]["psnr_predicted"] = predicted_psnr(recorded[k])
+        metrics["heldout"][scene.views[v]]["psnr_predicted"] = predicted_psnr(against[k])
         scores = metrics["heldout"][scene.views[v]]
         figure = heldout_figure(held_imgs[k], scene.images[v], scene.views[v], scores["psnr"], scores["psnr_black"],
                                 sigma[k])
         writer.image(f"uncertainty/{scene.views[v]}", figure, rec.fit.result.iterations, "HWC")
     metrics["uncertainty"] = {"members": conf.labels, "scale": conf.scale, "shift_voxels": conf.shift_voxels,
-                              "seconds": conf.seconds + time.perf_counter() - clock}
+                              "noise": noise.record(), "seconds": conf.seconds + time.perf_counter() - clock}
     if conf.poses is not None:
         metrics["uncertainty"]["poses"] = conf.poses.records()
     return sigma

@@ -28,7 +28,8 @@ def summary_table(metrics: dict) -> str:
     if held and "psnr_predicted" in held[0]:
         u = metrics.get("uncertainty", {})
         note = (f"by the confidence: {len(u.get('members', []))} members + shifts of "
-                f"{u.get('shift_voxels', 0):g} voxel, {u.get('seconds', 0.0):.1f} s; uncertainty.npz")
+                f"{u.get('shift_voxels', 0):g} voxel, {u.get('seconds', 0.0):.1f} s, and the training images' "
+                "sensor noise; uncertainty.npz")
         rows.append(("  predicted [dB]", f"{mean_of(metrics['heldout'], 'psnr_predicted'):.2f}  ({note})"))
     if held and "psnr_silhouette" in held[0]:
         rows.append(("  inside silhouettes [dB]", psnr_text(metrics["heldout"], "psnr_silhouette",
