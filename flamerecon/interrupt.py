@@ -6,7 +6,8 @@ calls :func:`install` on its first line. From then on a stop signal raises :clas
 (a ``KeyboardInterrupt``, so that no ``except Exception`` swallows it) at the next Python
 instruction, wherever the process is: the entry point ends it with one line, a ``FAILED`` file
 in the run's folder and the lock released. One that escapes to the top (a signal during the
-imports) is said in one line too, by the excepthook :func:`install` sets.
+imports) is said in one line too, by the excepthook :func:`install` sets, as is a Python that
+lacks a package the project needs (exit status 2).
 
 Inside a solve (:func:`deferred`) the first signal is only recorded, so that the solve's guard
 checkpoints it at its next check (``python train.py resume=RUN_DIR`` goes on from there). Long
@@ -31,6 +32,11 @@ from collections.abc import Iterator
 #: the exit status of a run or script ended by SIGINT, SIGTERM or SIGHUP (128 + SIGINT, as a
 #: shell reports Ctrl-C)
 EXIT_STATUS = 130
+#: the modules of the packages pyproject.toml declares as dependencies, by import name: one of them
+#: missing ends an entry point in one line (:func:`_excepthook`), not in a traceback
+REQUIRED = {"torch": "torch", "kornia": "kornia", "numpy": "numpy", "cv2": "opencv-python-headless",
+            "hydra": "hydra-core", "omegaconf": "hydra-core", "tensorboard": "tensorboard", "tqdm": "tqdm",
+            "numba": "numba"}
 #: the signals that stop a run (those of them this platform has)
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
@@ -160,7 +166,15 @@ def say(line: str) -> None:
 
 def _excepthook(kind, err, tb) -> None:
     """A KeyboardInterrupt that reached the top (a signal during the imports, before the entry
-    point's own handling): one line, the atexit handlers (locks) run, exit status 130."""
+    point's own handling): one line, the atexit handlers (locks) run, exit status 130. A package
+    the project needs missing from this Python (:data:`REQUIRED`): one line naming it and how to
+    install it, exit status 2."""
+    missing = (getattr(err, "name", None) or "").split(".")[0] if issubclass(kind, ModuleNotFoundError) else ""
+    if missing in REQUIRED:
+        say(f"flamerecon: error: this Python ({sys.executable}) has no module '{missing}' (package "
+            f"{REQUIRED[missing]}), which flamerecon needs; install the project into it (pip install -e . "
+            "in the checkout, README) or run the Python of the environment it is installed in")
+        os._exit(2)
     if not issubclass(kind, KeyboardInterrupt):
         sys.__excepthook__(kind, err, tb)
         return

@@ -21,10 +21,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tomllib
 import torch
 from omegaconf import OmegaConf
 
 from flamerecon.errors import Interrupted
+from flamerecon.interrupt import REQUIRED
 from flamerecon.run import guard, pipeline
 from flamerecon.run.checkpoint import CHECKPOINT_FILE
 from flamerecon.run.runner import FAILED_FILE, run_task
@@ -372,3 +374,23 @@ def test_a_script_passes_the_signal_on_to_the_run_it_started(tmp_path):
     run = out / "frame0"
     assert (run / CHECKPOINT_FILE).is_file() or (run / FAILED_FILE).is_file(), list(run.iterdir())
     assert not (run / ".lock").exists()
+
+
+@pytest.mark.parametrize("entry", [["train.py", "holdout=[no_such_camera]"], ["scripts/uncertainty_check.py", "--help"]])
+def test_a_python_without_a_package_the_project_needs_is_told_in_one_line(entry, tmp_path):
+    """An entry point run by a Python that lacks a dependency (here hydra, hidden from the import
+    system) ends in one line naming the module, its package and the way to install it, exit 2."""
+    code = ("import runpy, sys; sys.modules['hydra'] = None; sys.modules['torch'] = None; "
+            f"sys.argv = {entry!r}; runpy.run_path({entry[0]!r}, run_name='__main__')")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=repo_env(), capture_output=True, text=True,
+                          timeout=120, check=False)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout == ""
+    assert re.fullmatch(r"flamerecon: error: this Python \(.+\) has no module '(hydra|torch)' \(package "
+                        r"(hydra-core|torch)\), which flamerecon needs; install the project into it .*\n", done.stderr)
+
+
+def test_the_packages_an_entry_point_names_are_those_pyproject_declares():
+    declared = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]
+    names = {re.split(r"[<>=!~\[ ;]", d, maxsplit=1)[0] for d in declared}
+    assert set(REQUIRED.values()) == names
