@@ -56,17 +56,17 @@ class NoiseModel:
 def noise_model(images: torch.Tensor) -> NoiseModel:
     """The :class:`NoiseModel` of ``images`` (V, C, H, W) in [0, 1], recorded units, each at least
     3 x 3 pixels; zero where they hold no noise (or too few pixels to tell)."""
-    V, C, H, W = images.shape
+    _, C, H, W = images.shape
     if H < 3 or W < 3:
         zero = torch.zeros(C, dtype=torch.float64)
         return NoiseModel(zero, zero.clone())
-    x = images.detach().double().cpu().reshape(V * C, 1, H, W)
-    response = F.conv2d(x, KERNEL[None, None]).reshape(V, C, -1)
-    level = F.avg_pool2d(x, 3, stride=1).reshape(V, C, -1)
     a, b = [], []
-    for c in range(C):
-        r2, at = response[:, c].reshape(-1).pow(2), level[:, c].reshape(-1)
-        edges = torch.linspace(float(at.min()), float(at.max()) + 1e-12, BINS + 1, dtype=torch.float64)
+    for c in range(C):  # one channel at a time, in float32: a full-resolution rig's images are large
+        x = images[:, c:c + 1].detach().float().cpu()
+        r2 = F.conv2d(x, KERNEL[None, None].float()).reshape(-1).pow(2)
+        at = F.avg_pool2d(x, 3, stride=1).reshape(-1)
+        del x
+        edges = torch.linspace(float(at.min()), float(at.max()) + 1e-6, BINS + 1)
         which = torch.bucketize(at, edges[1:-1])
         rows = []
         for k in range(BINS):

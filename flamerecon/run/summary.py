@@ -69,7 +69,7 @@ def summary_table(metrics: dict) -> str:
             rows.append(("  calibration limits", limiting_text(c, metrics.get("uncertainty", {}).get("poses", {}))))
         elif c.get("frames"):  # a capture calibration kept without the pose offsets (calibration.offsets)
             rows.append(("  calibration limits", ("not measured: calibration.offsets=true (or uncertainty.enabled=true) "
-                                                  "measures each camera's pose error, once per capture")))
+                                                  "measures each camera's pose error, once per capture (a calibration.file holds its own or none)")))
         if found_nothing(c.get("rounds") or []):
             rows.append(("  found", (f"nothing to correct: {c['rounds'][0]['stopped']}; the capture's cameras "
                                      "are kept (calibration.refine=none skips the fit)")))
